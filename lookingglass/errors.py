@@ -1,0 +1,13 @@
+"""The one exception type the command line turns into a clear message and a non-zero exit."""
+
+
+class LookingGlassError(Exception):
+    """A problem with the user's input or request, stated so the user can fix it.
+
+    The message names the file (when there is one) and the problem; the CLI prints it without
+    a traceback and exits with status 2.
+    """
+
+    def __init__(self, message: str, path=None):
+        self.path = None if path is None else str(path)
+        super().__init__(f"{self.path}: {message}" if self.path else message)

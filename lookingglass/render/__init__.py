@@ -1,0 +1,1 @@
+"""Ray casting and rendering of dielectric meshes under an environment map."""

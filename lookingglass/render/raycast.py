@@ -1,0 +1,103 @@
+"""Ray casting against a triangle mesh with Embree (embreex, the backend trimesh uses).
+
+One scene per mesh; batched first-hit queries return distance, triangle, barycentrics, the hit
+point and the interpolated (smooth) normal. Everything is numpy float32/float64 (Embree is
+single precision); callers convert to torch where they need gradients.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+from embreex import rtcore_scene
+from embreex.mesh_construction import TriangleMesh
+
+
+@dataclass
+class Hits:
+    """First hits of N rays. hit: (N,) bool; t: (N,) distance (inf on a miss); face: (N,) int
+    (-1 on a miss); bary: (N, 3) barycentric weights of the face's vertices; point: (N, 3);
+    normal: (N, 3) unit smooth (vertex-interpolated) normal, outward; face_normal: (N, 3) unit
+    geometric normal, outward. Rows of misses are zero apart from t and face."""
+
+    hit: np.ndarray
+    t: np.ndarray
+    face: np.ndarray
+    bary: np.ndarray
+    point: np.ndarray
+    normal: np.ndarray
+    face_normal: np.ndarray
+
+
+class RayCaster:
+    """Embree scene of one mesh (any frame). Build once, query many times."""
+
+    def __init__(self, mesh: trimesh.Trimesh):
+        self.mesh = mesh
+        self.vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        self.faces = np.asarray(mesh.faces, dtype=np.int64)
+        self.vertex_normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
+        self.face_normals = np.asarray(mesh.face_normals, dtype=np.float64)
+        self._scene = rtcore_scene.EmbreeScene()
+        TriangleMesh(self._scene, self.vertices[self.faces].astype(np.float32))
+        # Secondary rays start this far along their direction so they don't re-hit their origin.
+        self.epsilon = 1e-5 * float(np.linalg.norm(mesh.extents))
+
+    def intersect(self, origins: np.ndarray, directions: np.ndarray, offset: bool = False) -> Hits:
+        """First hit of each ray. origins, directions: (N, 3); directions need not be unit but
+        `t` is then in units of |direction|. With offset=True the origins are moved by
+        `epsilon` along the (unit) direction first and t is measured from the moved origin."""
+        o = np.ascontiguousarray(origins, dtype=np.float32).reshape(-1, 3)
+        d = np.ascontiguousarray(directions, dtype=np.float32).reshape(-1, 3)
+        if offset:
+            o = (o + self.epsilon * d).astype(np.float32)
+        n = len(o)
+        if n == 0:
+            z = np.zeros((0, 3))
+            return Hits(np.zeros(0, bool), np.zeros(0), np.zeros(0, np.int64), z, z, z, z)
+        res = self._scene.run(o, d, output=1)
+        face = res["primID"].astype(np.int64)
+        hit = res["geomID"] != -1
+        face = np.where(hit, face, -1)
+        t = np.where(hit, res["tfar"].astype(np.float64), np.inf)
+        u = res["u"].astype(np.float64)
+        v = res["v"].astype(np.float64)
+        bary = np.stack([1 - u - v, u, v], axis=-1) * hit[:, None]
+        fi = np.where(hit, face, 0)
+        tri = self.faces[fi]  # (N, 3)
+        point = np.einsum("nk,nkj->nj", bary, self.vertices[tri])
+        normal = np.einsum("nk,nkj->nj", bary, self.vertex_normals[tri])
+        normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
+        face_normal = self.face_normals[fi] * hit[:, None]
+        return Hits(hit, t, face, bary, point, normal * hit[:, None], face_normal)
+
+    def hit_mask(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """(N,) bool: does each ray hit the mesh at all."""
+        o = np.ascontiguousarray(origins, dtype=np.float32).reshape(-1, 3)
+        d = np.ascontiguousarray(directions, dtype=np.float32).reshape(-1, 3)
+        if len(o) == 0:
+            return np.zeros(0, bool)
+        return self._scene.run(o, d) != -1
+
+
+def object_masks(mesh: trimesh.Trimesh, cameras, samples_per_axis: int = 1) -> np.ndarray:
+    """Binary silhouettes of `mesh` seen by `cameras` (lookingglass.physics.camera.Cameras).
+
+    With samples_per_axis = s > 1 each pixel is tested at s x s sub-pixel positions and counts as
+    object when at least half of them hit (a box-filtered coverage thresholded at 0.5).
+    Returns (V, H, W) bool.
+    """
+    import torch
+
+    caster = RayCaster(mesh)
+    cams = cameras.to(dtype=torch.float64, device="cpu")
+    s = int(samples_per_axis)
+    coverage = np.zeros((cams.num_views, cams.height, cams.width))
+    for i in range(s):
+        for j in range(s):
+            origins, dirs = cams.pixel_rays(subpixel=((j + 0.5) / s, (i + 0.5) / s))
+            hit = caster.hit_mask(origins.reshape(-1, 3).numpy(), dirs.reshape(-1, 3).numpy())
+            coverage += hit.reshape(coverage.shape)
+    return coverage / (s * s) >= 0.5
