@@ -1,0 +1,179 @@
+"""Reading and writing images, masks and environment maps, with clear errors.
+
+In memory, images and environment maps are float32 (H, W, 3) linear RGB; masks are bool (H, W).
+8-bit files are sRGB-encoded unless told otherwise; .exr and .hdr are linear. Writes are atomic.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..errors import LookingGlassError
+from ..fileio import write_atomic
+
+HDR_SUFFIXES = {".exr", ".hdr"}
+LDR_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """sRGB transfer function inverse, x in [0, 1]."""
+    x = np.asarray(x, dtype=np.float32)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    """sRGB transfer function, x clipped to [0, 1]."""
+    x = np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
+
+
+def _check_exists(path: Path) -> None:
+    if not path.exists():
+        raise LookingGlassError("file not found", path)
+    if not path.is_file():
+        raise LookingGlassError("not a file", path)
+
+
+def _read_exr(path: Path) -> np.ndarray:
+    import OpenEXR
+
+    try:
+        with OpenEXR.File(str(path)) as f:
+            channels = f.channels()
+            if "RGB" in channels:
+                rgb = channels["RGB"].pixels
+            elif all(c in channels for c in "RGB"):
+                rgb = np.stack([channels[c].pixels for c in "RGB"], axis=-1)
+            elif "RGBA" in channels:
+                rgb = channels["RGBA"].pixels[..., :3]
+            elif len(channels) == 1:
+                (only,) = channels.values()
+                rgb = np.repeat(np.asarray(only.pixels)[..., None], 3, axis=-1)
+            else:
+                raise LookingGlassError(f"EXR has no RGB channels (found {sorted(channels)})", path)
+    except LookingGlassError:
+        raise
+    except Exception as exc:  # OpenEXR raises plain exceptions on corrupt files
+        raise LookingGlassError(f"cannot read EXR image ({exc})", path) from None
+    return np.ascontiguousarray(rgb, dtype=np.float32)
+
+
+def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, bool]:
+    """Read any supported image as float32 (H, W, C) with C in {1, 3, 4}, RGB(A) order.
+
+    Returns (pixels, is_hdr): 8/16-bit images are scaled to [0, 1] but not linearized.
+    """
+    path = Path(path)
+    _check_exists(path)
+    suffix = path.suffix.lower()
+    if suffix == ".exr":
+        return _read_exr(path), True
+    if suffix not in HDR_SUFFIXES | LDR_SUFFIXES:
+        raise LookingGlassError(f"unsupported image type '{suffix}' (use PNG, JPG, EXR or HDR)", path)
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | (cv2.IMREAD_ANYDEPTH if suffix == ".hdr" else 0))
+    if img is None:
+        raise LookingGlassError("cannot read image (corrupt or not an image)", path)
+    if img.ndim == 2:
+        img = img[..., None]
+    if img.shape[-1] >= 3:  # OpenCV is BGR(A)
+        img = np.concatenate([img[..., 2::-1], img[..., 3:]], axis=-1)
+    if img.dtype == np.uint8:
+        out = img.astype(np.float32) / 255.0
+    elif img.dtype == np.uint16:
+        out = img.astype(np.float32) / 65535.0
+    else:
+        out = img.astype(np.float32)
+    return np.ascontiguousarray(out), suffix in HDR_SUFFIXES
+
+
+def read_image(path: str | os.PathLike, encoding: str = "srgb") -> np.ndarray:
+    """A photo or rendering as linear float32 (H, W, 3).
+
+    encoding applies to 8/16-bit files: "srgb" (linearized) or "linear". EXR/HDR are linear.
+    """
+    if encoding not in ("srgb", "linear"):
+        raise LookingGlassError(f"unknown image encoding '{encoding}' (use 'srgb' or 'linear')")
+    img, is_hdr = read_raw(path)
+    if img.shape[-1] == 1:
+        img = np.repeat(img, 3, axis=-1)
+    img = img[..., :3]
+    if not np.isfinite(img).all():
+        raise LookingGlassError("image contains NaN or infinite values", path)
+    if not is_hdr and encoding == "srgb":
+        img = srgb_to_linear(img)
+    return np.ascontiguousarray(img, dtype=np.float32)
+
+
+def read_mask(path: str | os.PathLike) -> np.ndarray:
+    """An object mask as bool (H, W): object where > 127 of 255.
+
+    A single-channel or grey image is read directly; an image with an alpha channel that is not
+    fully opaque uses the alpha channel (masks saved as PNG alpha); otherwise the first channel.
+    """
+    img, _ = read_raw(path)
+    if img.shape[-1] in (2, 4) and img[..., -1].min() < 1.0:
+        m = img[..., -1]
+    else:
+        m = img[..., 0]
+    return m > (127.5 / 255.0)
+
+
+def read_envmap(path: str | os.PathLike, scale: float = 1.0) -> np.ndarray:
+    """An equirectangular environment map as linear float32 (H, W, 3) times `scale`.
+
+    8-bit maps are linearized from sRGB. Rejects NaN/inf, negative values and a width that is
+    not twice the height.
+    """
+    path = Path(path)
+    env = read_image(path, encoding="srgb")
+    h, w = env.shape[:2]
+    if w != 2 * h:
+        raise LookingGlassError(f"environment map must be equirectangular with width = 2 x height, got {w}x{h}", path)
+    if (env < 0).any():
+        raise LookingGlassError("environment map has negative radiance values", path)
+    if not np.isfinite(scale) or scale <= 0:
+        raise LookingGlassError(f"environment map scale must be a positive number, got {scale}", path)
+    return env * np.float32(scale)
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray, encoding: str = "srgb") -> Path:
+    """Write linear float (H, W, 3) atomically: .exr/.hdr as linear float, .png/.jpg as 8-bit
+    (sRGB-encoded when encoding == "srgb", else the clipped linear values)."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    img = np.asarray(image, dtype=np.float32)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=-1)
+    if suffix == ".exr":
+        import OpenEXR
+
+        def writer(tmp: Path) -> None:
+            header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+            with OpenEXR.File(header, {"RGB": np.ascontiguousarray(img[..., :3])}) as f:
+                f.write(str(tmp))
+
+        return write_atomic(path, writer)
+    if suffix == ".hdr":
+        bgr = np.ascontiguousarray(img[..., 2::-1])
+        return write_atomic(path, lambda tmp: _cv_write(tmp, bgr))
+    if suffix in (".png", ".jpg", ".jpeg"):
+        enc = linear_to_srgb(img) if encoding == "srgb" else np.clip(img, 0, 1)
+        u8 = np.round(enc * 255).astype(np.uint8)
+        bgr = np.ascontiguousarray(u8[..., 2::-1]) if u8.shape[-1] >= 3 else u8
+        return write_atomic(path, lambda tmp: _cv_write(tmp, bgr))
+    raise LookingGlassError(f"unsupported output image type '{suffix}'", path)
+
+
+def write_mask(path: str | os.PathLike, mask: np.ndarray) -> Path:
+    """Write a bool (H, W) mask as an 8-bit PNG (0 / 255), atomically."""
+    u8 = np.where(np.asarray(mask, dtype=bool), 255, 0).astype(np.uint8)
+    return write_atomic(path, lambda tmp: _cv_write(tmp, u8))
+
+
+def _cv_write(path: Path, pixels: np.ndarray) -> None:
+    if not cv2.imwrite(str(path), pixels):
+        raise LookingGlassError("cannot write image", path)

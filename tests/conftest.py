@@ -1,0 +1,20 @@
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))  # tests/mitsuba_ref.py and friends
+os.environ.setdefault("OMP_NUM_THREADS", "2")
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+if not SHARED.exists():  # a clone elsewhere: ../shared beside the repository
+    SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+
+
+@pytest.fixture(scope="session")
+def shared_envmaps() -> list[Path]:
+    maps = sorted((SHARED / "envmaps").glob("*.hdr"))
+    if not maps:
+        pytest.skip("../shared/envmaps not found")
+    return maps
