@@ -7,9 +7,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))  # tests/mitsuba_ref.py and friends
 os.environ.setdefault("OMP_NUM_THREADS", "2")
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
-if not SHARED.exists():  # a clone elsewhere: ../shared beside the repository
-    SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+SHARED = Path(__file__).resolve().parents[2] / "shared"  # ../shared beside the repository
 
 
 @pytest.fixture(scope="session")

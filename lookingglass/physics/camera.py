@@ -51,9 +51,13 @@ class Cameras:
         as_t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731 - basis in double
         origin, target, up = as_t(origin).reshape(-1, 3), as_t(target).reshape(-1, 3), as_t(up).reshape(-1, 3)
         fov = as_t(fov_x_deg).reshape(-1).expand(origin.shape[0])
+        forward = target - origin
+        side = torch.linalg.cross(forward, up, dim=-1).norm(dim=-1)
+        bad = (forward.norm(dim=-1) < 1e-12) | (side < 1e-9 * forward.norm(dim=-1) * up.norm(dim=-1)) | (up.norm(dim=-1) < 1e-12)
+        if bad.any():
+            raise ValueError(f"degenerate camera {bad.nonzero()[0].item()}: origin == target, zero up vector, "
+                             "or up parallel to the viewing direction")
         basis = look_at_basis(origin, target, up)
-        if not torch.isfinite(basis).all():
-            raise ValueError("degenerate camera: up is parallel to the viewing direction or origin == target")
         tan_half = torch.tan(torch.deg2rad(fov) / 2)
         to = dict(dtype=dtype, device=device)
         return cls(origin.to(**to), basis.to(**to), tan_half.to(**to), int(width), int(height))
