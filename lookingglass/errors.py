@@ -11,3 +11,11 @@ class LookingGlassError(Exception):
     def __init__(self, message: str, path=None):
         self.path = None if path is None else str(path)
         super().__init__(f"{self.path}: {message}" if self.path else message)
+
+
+class LookingGlassWarning(UserWarning):
+    """Something odd but usable in the user's input (an unknown key, a duplicated camera...).
+
+    Emitted with `warnings.warn(LookingGlassWarning(message))`; the message names the file and
+    the oddity, like LookingGlassError's.
+    """

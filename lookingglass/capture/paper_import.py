@@ -1,0 +1,276 @@
+"""Convert the paper's real-capture layout into a scene folder (DESIGN.md format).
+
+The paper's release describes a real capture with:
+
+- a camera file `cam*.txt`: the view count on the first line, then per view three lines:
+  origin, target, up (3 floats each, whitespace or comma separated; blank lines and lines
+  starting with '#' are skipped);
+- a folder of photos (JPEG from a phone, possibly holding more photos than masks);
+- a folder of masks, matched to photos by file stem, binary or in the PNG alpha channel;
+- an environment map and the factor bringing it into the photos' units, and fov_x.
+
+The camera file lists the masked views in the *sorted order of the mask names*. We sort with a
+natural key (digit runs compare as numbers, letters case-insensitively): "2" < "10". For the
+release's own names (fixed-width timestamps such as LRM_20191113_010451) this is the same as
+plain sorting; for unpadded numbers (im_1 ... im_12, as the release numbers its processed
+views in camera order) only the natural order is right.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import tempfile
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..errors import LookingGlassError
+from .images import HDR_SUFFIXES, read_envmap, read_image, read_mask, read_raw, write_image, write_mask
+from .scene import SCENE_FILE, SceneSpec, ViewSpec, load_capture, save_scene
+
+PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
+MASK_SUFFIXES = (".png", ".jpg", ".jpeg")
+ENVMAP_SUFFIXES = (".hdr", ".exr", ".png", ".jpg", ".jpeg")
+PAPER_FOV_X_DEG = 63.349
+MAX_ASPECT_ERROR_PX = 0.5
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key: digit runs compare as integers, text case-insensitively ("im_2" < "im_10")."""
+    parts = re.split(r"(\d+)", name)
+    return tuple((0, int(p), "") if p.isdigit() else (1, 0, p.lower()) for p in parts) + ((2, 0, name),)
+
+
+def read_paper_cameras(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read a `cam*.txt` file of the paper's release.
+
+    Returns origin, target, up: each (V, 3) float64, world frame of the capture. Raises
+    LookingGlassError naming the file and the (1-based) line for anything unparsable, and when
+    the number of views differs from the count on the first line.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise LookingGlassError("camera file not found" if not path.exists() else "not a file", path)
+    try:
+        lines = path.read_text(encoding="utf-8", errors="strict").splitlines()
+    except (UnicodeDecodeError, OSError) as exc:
+        raise LookingGlassError(f"cannot read camera file as text ({exc})", path) from None
+    rows = [(n, line.strip()) for n, line in enumerate(lines, 1)]
+    rows = [(n, s) for n, s in rows if s and not s.startswith("#")]
+    if not rows:
+        raise LookingGlassError("camera file is empty (expected the view count on the first line)", path)
+    n0, head = rows[0]
+    try:
+        count = int(head.split()[0]) if len(head.split()) == 1 else None
+    except ValueError:
+        count = None
+    if count is None or count <= 0:
+        raise LookingGlassError(f"line {n0}: expected the number of views (a positive integer), got '{head}'", path)
+    vectors = []
+    for n, s in rows[1:]:
+        tokens = s.replace(",", " ").split()
+        try:
+            vec = [float(t) for t in tokens]
+        except ValueError:
+            vec = None
+        if vec is None or len(vec) != 3 or not all(np.isfinite(vec)):
+            raise LookingGlassError(f"line {n}: expected 3 numbers (origin, target or up of a view), got '{s}'", path)
+        vectors.append(vec)
+    if len(vectors) != 3 * count:
+        whole, rest = divmod(len(vectors), 3)
+        got = f"{whole} views" + (f" and {rest} extra line{'s' if rest > 1 else ''}" if rest else "")
+        raise LookingGlassError(f"line {n0} says {count} views but the file holds {got} "
+                                "(3 lines per view: origin, target, up)", path)
+    arr = np.asarray(vectors, dtype=np.float64).reshape(count, 3, 3)
+    return arr[:, 0], arr[:, 1], arr[:, 2]
+
+
+def _find_camera_file(cams: Path) -> Path:
+    if cams.is_dir():
+        found = sorted(cams.glob("cam*.txt"), key=lambda p: natural_key(p.name))
+        if len(found) != 1:
+            what = "no cam*.txt" if not found else f"{len(found)} camera files ({', '.join(p.name for p in found)})"
+            raise LookingGlassError(f"{what} in this folder: pass the camera file itself", cams)
+        return found[0]
+    return cams
+
+
+def _list_files(folder: Path, suffixes: tuple[str, ...], what: str) -> dict[str, list[Path]]:
+    """stem -> files with that stem and one of `suffixes` (case-insensitive), hidden files skipped."""
+    if not folder.exists():
+        raise LookingGlassError(f"{what} folder not found", folder)
+    if not folder.is_dir():
+        raise LookingGlassError(f"not a folder (expected the {what} folder)", folder)
+    out: dict[str, list[Path]] = {}
+    for p in folder.iterdir():
+        if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in suffixes:
+            out.setdefault(p.stem, []).append(p)
+    return out
+
+
+def _check_aspect(w_in: int, h_in: int, w_out: int, h_out: int, path: Path) -> None:
+    """Resizing keeps fov_x; the vertical field then follows from the aspect ratio. Allow the
+    resulting misalignment at the top/bottom edge up to MAX_ASPECT_ERROR_PX output pixels
+    (2048x1534 -> 480x360, the paper's own conversion, is off by 0.23 px)."""
+    err = 0.5 * h_out * abs(1.0 - (h_out * w_in) / (w_out * h_in))
+    if err > MAX_ASPECT_ERROR_PX:
+        h_fit = max(1, round(w_out * h_in / w_in))
+        raise LookingGlassError(
+            f"resizing {w_in}x{h_in} to {w_out}x{h_out} changes the aspect ratio (the image edges would be "
+            f"{err:.1f} px off the camera model, which keeps fov_x); use {w_out}x{h_fit} or crop the photos "
+            "and masks first", path)
+
+
+def _refuse_dangerous_out(out: Path, inputs: list[Path]) -> None:
+    o = out.resolve()
+    for p in inputs:
+        q = p.resolve()
+        if q == o or o in q.parents:
+            raise LookingGlassError(f"output folder would replace the input {p}", out)
+
+
+def import_paper(cams: Path, images: Path, masks: Path, envmap: Path, out: Path, envmap_scale: float = 1.0,
+                 fov_x_deg: float = PAPER_FOV_X_DEG, size: tuple[int, int] | None = None,
+                 force: bool = False) -> Path:
+    """Convert the paper's real-capture layout into the scene folder `out`; returns `out`.
+
+    cams: the camera file `cam*.txt` (or a folder holding exactly one). images: folder of
+    photos (.png/.jpg/.jpeg, any case; extra photos without masks are ignored). masks: folder of
+    masks (binary, or in the PNG alpha channel), matched to photos by file stem; the camera
+    file's views follow the masks' natural sort order (see the module docstring).
+    envmap: .hdr/.exr or 8-bit equirectangular map, copied unchanged to out/envmap<suffix>,
+    with envmap_scale recorded in scene.json. fov_x_deg: horizontal field of view of the photos.
+    size: (W, H) to resize photos (cv2.INTER_AREA on linear radiance) and masks (area average,
+    object where >= 0.5); fov_x is unchanged, so the aspect ratio must be kept (to within half
+    an output pixel at the image edges; otherwise an error, no cropping).
+
+    Output: images/<stem>.png (8-bit sRGB; .exr for HDR photos), masks/<stem>.png, envmap,
+    scene.json; written into a temporary folder beside `out`, loaded back with `load_capture`
+    (so every scene-folder check applies), then renamed onto `out`. Refuses a non-empty `out`
+    unless force. Inputs are only read.
+    """
+    cams, images, masks, envmap, out = (Path(p) for p in (cams, images, masks, envmap, out))
+    if not (np.isfinite(envmap_scale) and envmap_scale > 0):
+        raise LookingGlassError(f"envmap scale must be a positive number, got {envmap_scale}")
+    if not (np.isfinite(fov_x_deg) and 0 < fov_x_deg < 180):
+        raise LookingGlassError(f"fov_x must be in (0, 180) degrees, got {fov_x_deg}")
+    if size is not None:
+        if len(size) != 2 or any(int(s) != s or s <= 0 for s in size):
+            raise LookingGlassError(f"size must be two positive integers W H, got {size}")
+        size = (int(size[0]), int(size[1]))
+    if not envmap.is_file():
+        raise LookingGlassError("environment map not found" if not envmap.exists() else "not a file", envmap)
+    if envmap.suffix.lower() not in ENVMAP_SUFFIXES:
+        raise LookingGlassError(f"unsupported environment map type '{envmap.suffix}' (use .hdr, .exr, .png or .jpg)",
+                                envmap)
+    _refuse_dangerous_out(out, [cams, images, masks, envmap])
+    if out.exists():
+        if not out.is_dir():
+            raise LookingGlassError("output exists and is not a folder", out)
+        if any(out.iterdir()) and not force:
+            raise LookingGlassError("output folder is not empty (pass --force, or force=True, to replace it)", out)
+
+    cam_file = _find_camera_file(cams)
+    origin, target, up = read_paper_cameras(cam_file)
+    mask_files = _list_files(masks, MASK_SUFFIXES, "mask")
+    photo_files = _list_files(images, PHOTO_SUFFIXES, "image")
+    for stem, paths in mask_files.items():
+        if len(paths) > 1:
+            names = ", ".join(p.name for p in sorted(paths))
+            raise LookingGlassError(f"several masks share the stem '{stem}': {names}", masks)
+    stems = sorted(mask_files, key=natural_key)
+    if not stems:
+        raise LookingGlassError(f"no masks ({'/'.join(MASK_SUFFIXES)}) in this folder", masks)
+    if len(stems) != len(origin):
+        raise LookingGlassError(f"{len(stems)} masks in {masks} but the camera file lists {len(origin)} views "
+                                "(it must list exactly the masked views)", cam_file)
+
+    lower = {}
+    for stem, paths in photo_files.items():
+        lower.setdefault(stem.lower(), []).extend(paths)
+    photos: list[Path] = []
+    unmatched = []
+    for stem in stems:
+        cands = photo_files.get(stem) or lower.get(stem.lower(), [])
+        if not cands:
+            unmatched.append(stem)
+        elif len(cands) > 1:
+            raise LookingGlassError(f"several photos match the mask stem '{stem}': "
+                                    f"{', '.join(p.name for p in sorted(cands))}", images)
+        else:
+            photos.append(cands[0])
+    if unmatched:
+        shown = ", ".join(mask_files[s][0].name for s in unmatched[:5]) + (" ..." if len(unmatched) > 5 else "")
+        raise LookingGlassError(f"no photo in {images} for mask{'s' if len(unmatched) > 1 else ''} {shown} "
+                                "(photos are matched to masks by file stem)", mask_files[unmatched[0]][0])
+    read_envmap(envmap, envmap_scale)  # NaN/inf, shape and sign checks, naming the file
+
+    parent = out.resolve().parent
+    parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.importing-", dir=parent))
+    try:
+        first = read_raw(photos[0])[0].shape
+        target_wh = size or (first[1], first[0])
+
+        def convert(i: int) -> ViewSpec:
+            photo, mask_path = photos[i], mask_files[stems[i]][0]
+            is_hdr = photo.suffix.lower() in HDR_SUFFIXES
+            img = read_image(photo, "srgb")  # (H, W, 3) linear
+            mask = read_mask(mask_path)      # (H, W) bool
+            (hi, wi), (hm, wm) = img.shape[:2], mask.shape
+            if (hi, wi) != (hm, wm):
+                hint = " (rotated: check the photo's EXIF orientation)" if (hi, wi) == (wm, hm) else ""
+                raise LookingGlassError(f"mask is {wm}x{hm} but its photo {photo.name} is {wi}x{hi}{hint}", mask_path)
+            if not mask.any():
+                raise LookingGlassError("mask is empty (no object pixel)", mask_path)
+            W, H = target_wh
+            if (wi, hi) != (W, H):
+                if size is None:
+                    raise LookingGlassError(f"photo is {wi}x{hi} but {photos[0].name} is {W}x{H}; pass a size to "
+                                            "resize all views to one size", photo)
+                _check_aspect(wi, hi, W, H, photo)
+                img = cv2.resize(img, (W, H), interpolation=cv2.INTER_AREA)
+                mask = cv2.resize(mask.astype(np.float32), (W, H), interpolation=cv2.INTER_AREA) >= 0.5
+                if not mask.any():
+                    raise LookingGlassError(f"mask is empty after resizing to {W}x{H}", mask_path)
+            image_rel = f"images/{stems[i]}{'.exr' if is_hdr else '.png'}"
+            mask_rel = f"masks/{stems[i]}.png"
+            write_image(tmp / image_rel, img, encoding="srgb")
+            write_mask(tmp / mask_rel, mask)
+            o, t, u = (tuple(map(float, a[i])) for a in (origin, target, up))
+            return ViewSpec(image=image_rel, mask=mask_rel, origin=o, target=t, up=u, fov_x_deg=float(fov_x_deg))
+
+        with ThreadPoolExecutor(max(1, min(8, len(stems), os.cpu_count() or 1))) as pool:
+            views = list(pool.map(convert, range(len(stems))))
+        env_rel = f"envmap{envmap.suffix.lower()}"
+        shutil.copyfile(envmap, tmp / env_rel)
+        spec = SceneSpec(envmap=env_rel, envmap_scale=float(envmap_scale), image_encoding="srgb", views=views)
+        save_scene(tmp, spec)
+        load_capture(tmp)  # every scene-folder check, e.g. cameras that do not see the object
+        _move_into_place(tmp, out, force)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return out
+
+
+def _move_into_place(tmp: Path, out: Path, force: bool) -> None:
+    """Rename the finished folder `tmp` onto `out` (replacing a non-empty `out` only if force)."""
+    if out.exists():
+        if any(out.iterdir()):
+            if not force:
+                raise LookingGlassError("output folder is not empty (pass --force, or force=True, to replace it)", out)
+            backup = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=tmp.parent))
+            os.replace(out, backup / out.name)
+            os.replace(tmp, out)
+            shutil.rmtree(backup, ignore_errors=True)
+            return
+        out.rmdir()
+    os.replace(tmp, out)
+
+
+__all__ = ["import_paper", "read_paper_cameras", "natural_key", "PAPER_FOV_X_DEG", "SCENE_FILE"]
