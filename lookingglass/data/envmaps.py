@@ -254,12 +254,12 @@ def procedural_envmap(rng: np.random.Generator, height: int = 256) -> np.ndarray
             c = rng.normal(size=3)
             c /= np.linalg.norm(c)
             radius = rng.uniform(0.3, 1.3)
-            mask = _smoothstep(radius, radius - rng.uniform(texel, 0.1), _angle_to(d, c))
+            mask = _smoothstep(radius, radius - texel - rng.uniform(0, 0.1), _angle_to(d, c))
         elif region == "band":
             a = rng.normal(size=3)
             a /= np.linalg.norm(a)
             width = rng.uniform(0.1, 0.6)
-            mask = _smoothstep(width, width - rng.uniform(texel, 0.05), np.abs(d @ a - rng.uniform(-0.5, 0.5)))
+            mask = _smoothstep(width, width - texel - rng.uniform(0, 0.05), np.abs(d @ a - rng.uniform(-0.5, 0.5)))
         else:
             mask = blend[..., 0]
         # one dark and one bright colour: contrast is what makes refracted texture informative
@@ -280,12 +280,12 @@ def procedural_envmap(rng: np.random.Generator, height: int = 256) -> np.ndarray
         glow = np.exp(-ang / rng.uniform(0.05, 0.3)) * rng.uniform(1, 10)
         sources.append(_hsv(rng, (0.0, 0.3), (0.9, 1.0)) * (disc * np.exp(rng.uniform(np.log(100), np.log(5000)))
                                                             + glow)[..., None])
-    for _ in range(int(rng.integers(0 if sources else 1, 5))):  # lamps: 1-6 deg, 10-300x
+    for _ in range(int(rng.integers(0 if sources else 1, 5))):  # lamps: 1-6 deg, 20-300x
         c = rng.normal(size=3)
         c /= np.linalg.norm(c)
         r = max(np.radians(rng.uniform(1.0, 6.0)), texel)
         disc = _smoothstep(r + texel, r, _angle_to(d, c))
-        sources.append(_hsv(rng, (0.0, 0.5), (0.8, 1.0)) * (disc * np.exp(rng.uniform(np.log(10), np.log(300))))[..., None])
+        sources.append(_hsv(rng, (0.0, 0.5), (0.8, 1.0)) * (disc * np.exp(rng.uniform(np.log(20), np.log(300))))[..., None])
     for _ in range(int(rng.integers(0, 3))):  # area lights (windows, panels): 5-25 deg, 5-50x
         e = _frame(rng)
         p = d @ e.T

@@ -122,7 +122,8 @@ def _primitive_sdf(kind: str, x: np.ndarray, y: np.ndarray, z: np.ndarray, p: di
         r = p["radii"]
         k0 = _length(x / r[0], y / r[1], z / r[2])
         k1 = _length(x / r[0] ** 2, y / r[1] ** 2, z / r[2] ** 2)
-        return k0 * (k0 - 1.0) / np.maximum(k1, 1e-6)
+        # at the very centre k0 = k1 = 0: the depth there is the smallest radius
+        return np.where(k1 > 1e-9, k0 * (k0 - 1.0) / np.maximum(k1, 1e-9), -float(np.min(r)))
     if kind in ("box", "plate"):
         b, rr = p["half"], p["rounding"]
         qx, qy, qz = np.abs(x) - (b[0] - rr), np.abs(y) - (b[1] - rr), np.abs(z) - (b[2] - rr)
@@ -449,6 +450,42 @@ def _project_to_zero_set(vertices: np.ndarray, field_at, h: float, iterations: i
     return v
 
 
+def self_intersecting_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Indices of faces that intersect another face of the mesh (pymeshlab's exact test)."""
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=vertices, face_matrix=faces.astype(np.int32)))
+    ms.compute_selection_by_self_intersections_per_face()
+    return np.flatnonzero(ms.current_mesh().face_selection_array())
+
+
+def _undo_self_intersections(verts: np.ndarray, safe: np.ndarray, faces: np.ndarray, rounds: int = 3) -> np.ndarray:
+    """Put the vertices around self-intersecting faces back to their `safe` positions.
+
+    Smoothing and projection move vertices by up to ~h/2; where two sheets of the surface are
+    closer than that (narrow gaps between parts, sharp creases) a few faces (~1 shape in 40) can
+    pass through each other. Marching cubes itself does not self-intersect, so reverting the
+    vertices of the offending faces and a ring around them, growing the ring each round, removes
+    them; if that fails, all vertices are reverted."""
+    bad = self_intersecting_faces(verts, faces)
+    if len(bad) == 0:
+        return verts
+    n = len(verts)
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    adjacency = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
+    adjacency = adjacency + adjacency.T
+    verts = verts.copy()
+    for ring in range(1, rounds + 1):
+        mask = np.zeros(n, dtype=bool)
+        mask[faces[bad].ravel()] = True
+        for _ in range(ring):
+            mask |= adjacency @ mask > 0
+        verts[mask] = safe[mask]
+        bad = self_intersecting_faces(verts, faces)
+        if len(bad) == 0:
+            return verts
+    return safe.copy()
+
+
 def _mesh_field(field_: np.ndarray, axes, field_at, config: ShapeConfig) -> trimesh.Trimesh | None:
     """Clean the field to one solid, mesh it, simplify if needed, smooth, project onto the exact
     zero set of `field_at` (world points (N, 3) -> (N,)). None if degenerate."""
@@ -462,13 +499,15 @@ def _mesh_field(field_: np.ndarray, axes, field_at, config: ShapeConfig) -> trim
     if len(faces) > config.max_faces:
         ms.meshing_decimation_quadric_edge_collapse(targetfacenum=config.target_faces, preservetopology=True,
                                                     preservenormal=True, qualitythr=0.5, autoclean=True)
+    safe = ms.current_mesh().vertex_matrix().astype(np.float64)  # marching cubes: no self-intersections
     if config.taubin_steps > 0:  # evens out the marching-cubes triangle pattern before projecting
         ms.apply_coord_taubin_smoothing(lambda_=0.5, mu=-0.53, stepsmoothnum=config.taubin_steps)
     m = ms.current_mesh()
-    verts = m.vertex_matrix().astype(np.float64)
+    verts, faces = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
     if config.projection_steps > 0:
         verts = _project_to_zero_set(verts, field_at, h, config.projection_steps)
-    mesh = trimesh.Trimesh(verts, m.face_matrix().astype(np.int64), process=False)
+    verts = _undo_self_intersections(verts, safe, faces)
+    mesh = trimesh.Trimesh(verts, faces, process=False)
     if len(mesh.faces) < config.min_faces or not mesh.is_watertight:
         return None
     if mesh.volume < 0:  # make normals point outwards (marching-cubes winding depends on the sign)
