@@ -86,7 +86,7 @@ class ShapeConfig:
 class Primitive:
     """One SDF primitive. world = center + rotation @ local; local = (world - center) @ rotation.
 
-    kind: one of KINDS (additive) or a carve shape ("ellipsoid", "capsule", "box").
+    kind: one of KINDS (carving primitives use "ellipsoid" and "capsule").
     params: kind-specific sizes in the local frame (see `_primitive_sdf`).
     half_extents: (3,) local-frame half sizes of its bounding box (used for the grid and placement).
     """
@@ -285,7 +285,6 @@ class _Noise:
         out = (a.T.astype(np.complex64) @ yz).imag
         return out.reshape(len(xs), len(ys), len(zs)).astype(np.float32)
 
-
     def at(self, points: np.ndarray) -> np.ndarray:
         """Noise at world points (N, 3) -> (N,) float64."""
         return np.sin(points @ self.freq.T + self.phase) @ self.amplitude
@@ -458,14 +457,16 @@ def self_intersecting_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarr
     return np.flatnonzero(ms.current_mesh().face_selection_array())
 
 
-def _undo_self_intersections(verts: np.ndarray, safe: np.ndarray, faces: np.ndarray, rounds: int = 3) -> np.ndarray:
+def _undo_self_intersections(verts: np.ndarray, safe: np.ndarray, faces: np.ndarray,
+                             rounds: int = 3) -> np.ndarray | None:
     """Put the vertices around self-intersecting faces back to their `safe` positions.
 
     Smoothing and projection move vertices by up to ~h/2; where two sheets of the surface are
     closer than that (narrow gaps between parts, sharp creases) a few faces (~1 shape in 40) can
     pass through each other. Marching cubes itself does not self-intersect, so reverting the
     vertices of the offending faces and a ring around them, growing the ring each round, removes
-    them; if that fails, all vertices are reverted."""
+    them; if that fails, all vertices are reverted. None if even `safe` self-intersects (possible
+    only after simplification): the caller redraws the shape."""
     bad = self_intersecting_faces(verts, faces)
     if len(bad) == 0:
         return verts
@@ -483,7 +484,7 @@ def _undo_self_intersections(verts: np.ndarray, safe: np.ndarray, faces: np.ndar
         bad = self_intersecting_faces(verts, faces)
         if len(bad) == 0:
             return verts
-    return safe.copy()
+    return safe.copy() if len(self_intersecting_faces(safe, faces)) == 0 else None
 
 
 def _mesh_field(field_: np.ndarray, axes, field_at, config: ShapeConfig) -> trimesh.Trimesh | None:
@@ -507,6 +508,8 @@ def _mesh_field(field_: np.ndarray, axes, field_at, config: ShapeConfig) -> trim
     if config.projection_steps > 0:
         verts = _project_to_zero_set(verts, field_at, h, config.projection_steps)
     verts = _undo_self_intersections(verts, safe, faces)
+    if verts is None:
+        return None
     mesh = trimesh.Trimesh(verts, faces, process=False)
     if len(mesh.faces) < config.min_faces or not mesh.is_watertight:
         return None
