@@ -1,5 +1,9 @@
 """Procedural shapes: one closed outer surface, unit-sphere normalized, deterministic, varied."""
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -117,3 +121,12 @@ def test_config_bounds_face_count():
     m = random_shape(1, ShapeConfig(target_faces=12000, max_faces=15000))
     assert m.is_watertight and m.body_count == 1
     assert len(m.faces) <= 15000
+
+
+def test_identical_whatever_the_thread_count(meshes):
+    """BLAS rounding can depend on the thread count; the shapes must not (a scene's seed is its shape)."""
+    code = ("import sys, numpy as np; from lookingglass.data.shapes import random_shape; "
+            "sys.stdout.buffer.write(random_shape(3).vertices.tobytes())")
+    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, check=True).stdout
+    np.testing.assert_array_equal(np.frombuffer(out, dtype=np.float64).reshape(-1, 3), meshes[3].vertices)

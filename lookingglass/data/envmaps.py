@@ -182,6 +182,13 @@ def _frame(rng: np.random.Generator) -> np.ndarray:
     return q.T
 
 
+def _matmul3(a: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """a (..., 3) @ m (3,) or (3, K) by broadcasting: numpy's @ calls BLAS, whose rounding can
+    depend on the thread count, and a map must be bit-identical for its seed on any setting."""
+    return a[..., 0:1] * m[0] + a[..., 1:2] * m[1] + a[..., 2:3] * m[2] if m.ndim == 2 else \
+        a[..., 0] * m[0] + a[..., 1] * m[1] + a[..., 2] * m[2]
+
+
 def _smoothstep(e0: float, e1: float, x: np.ndarray) -> np.ndarray:
     t = np.clip((x - e0) / (e1 - e0), 0.0, 1.0)
     return t * t * (3 - 2 * t)
@@ -189,7 +196,7 @@ def _smoothstep(e0: float, e1: float, x: np.ndarray) -> np.ndarray:
 
 def _angle_to(d: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Angle (radians) between directions d (..., 3) and unit c (3,)."""
-    return np.arccos(np.clip(d @ c, -1.0, 1.0))
+    return np.arccos(np.clip(_matmul3(d, c), -1.0, 1.0))
 
 
 def _pattern(rng: np.random.Generator, d: np.ndarray) -> np.ndarray:
@@ -200,7 +207,7 @@ def _pattern(rng: np.random.Generator, d: np.ndarray) -> np.ndarray:
     the usual height 256 (no aliasing) and fine enough to show refraction's distortions."""
     kind = rng.choice(["checker", "stripes", "noise", "blobs", "tiles"])
     e = _frame(rng)
-    p = d @ e.T  # coordinates in a random frame
+    p = _matmul3(d, e.T)  # coordinates in a random frame
     f = np.exp(rng.uniform(np.log(1.5), np.log(12.0))) * 2 * np.pi
     if kind == "checker":
         return (np.sin(f * p[..., 0]) * np.sin(f * p[..., 1]) * np.sin(f * p[..., 2] + rng.uniform(0, 6)) > 0
@@ -215,7 +222,7 @@ def _pattern(rng: np.random.Generator, d: np.ndarray) -> np.ndarray:
         out = np.zeros(d.shape[:-1])
         for octave in range(4):
             w = rng.normal(size=(8, 3)) * (f / 8) * 2 ** octave
-            out += np.sin(d @ w.T + rng.uniform(0, 2 * np.pi, 8)).sum(-1) * 0.5 ** octave
+            out += np.sin(_matmul3(d, w.T) + rng.uniform(0, 2 * np.pi, 8)).sum(-1) * 0.5 ** octave
         return 0.5 + 0.5 * np.tanh(out / 3)
     # blobs: many small soft discs
     n = int(rng.integers(20, 120))
@@ -225,7 +232,7 @@ def _pattern(rng: np.random.Generator, d: np.ndarray) -> np.ndarray:
     out = np.zeros(d.shape[:-1])
     for c, r in zip(centres, radius):  # a loop over blobs, each vectorized over all texels
         # soft edge between angles 0.7 r and r, on the cosine (no arccos per texel)
-        out = np.maximum(out, _smoothstep(math.cos(r), math.cos(0.7 * r), d @ c))
+        out = np.maximum(out, _smoothstep(math.cos(r), math.cos(0.7 * r), _matmul3(d, c)))
     return out
 
 
@@ -260,7 +267,7 @@ def procedural_envmap(rng: np.random.Generator, height: int = 256) -> np.ndarray
             a = rng.normal(size=3)
             a /= np.linalg.norm(a)
             width = rng.uniform(0.1, 0.6)
-            mask = _smoothstep(width, width - texel - rng.uniform(0, 0.05), np.abs(d @ a - rng.uniform(-0.5, 0.5)))
+            mask = _smoothstep(width, width - texel - rng.uniform(0, 0.05), np.abs(_matmul3(d, a) - rng.uniform(-0.5, 0.5)))
         else:
             mask = blend[..., 0]
         # one dark and one bright colour: contrast is what makes refracted texture informative
@@ -289,7 +296,7 @@ def procedural_envmap(rng: np.random.Generator, height: int = 256) -> np.ndarray
         sources.append(_hsv(rng, (0.0, 0.5), (0.8, 1.0)) * (disc * np.exp(rng.uniform(np.log(20), np.log(300))))[..., None])
     for _ in range(int(rng.integers(0, 3))):  # area lights (windows, panels): 5-25 deg, 5-50x
         e = _frame(rng)
-        p = d @ e.T
+        p = _matmul3(d, e.T)
         half = np.radians(rng.uniform(5, 25, 2))
         rect = (_smoothstep(np.sin(half[0]) + texel, np.sin(half[0]), np.abs(p[..., 0]))
                 * _smoothstep(np.sin(half[1]) + texel, np.sin(half[1]), np.abs(p[..., 1])) * (p[..., 2] > 0))

@@ -107,6 +107,12 @@ class Primitive:
 # signed distance functions (local frame, on broadcast coordinate arrays, float32)
 # ---------------------------------------------------------------------------------------------
 
+def _matmul3(a: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """a (..., 3) @ m (3, K) by broadcasting. numpy's @ calls BLAS, whose rounding can depend on
+    the number of threads; this keeps every shape bit-identical for its seed on any setting."""
+    return a[..., 0:1] * m[0] + a[..., 1:2] * m[1] + a[..., 2:3] * m[2]
+
+
 def _length(*xs: np.ndarray) -> np.ndarray:
     return np.sqrt(sum(x * x for x in xs))
 
@@ -278,16 +284,20 @@ class _Noise:
 
         Separable: sin(w.p + phi) = Im(e^{i phi} e^{i wx x} e^{i wy y} e^{i wz z}), so the sum over
         terms is one complex matrix product instead of T sines per voxel."""
-        a = (self.amplitude * np.exp(1j * self.phase))[:, None] * np.exp(1j * np.outer(self.freq[:, 0], xs))
-        ey = np.exp(1j * np.outer(self.freq[:, 1], ys)).astype(np.complex64)
-        ez = np.exp(1j * np.outer(self.freq[:, 2], zs)).astype(np.complex64)
-        yz = (ey[:, :, None] * ez[:, None, :]).reshape(len(self.phase), -1)
-        out = (a.T.astype(np.complex64) @ yz).imag
-        return out.reshape(len(xs), len(ys), len(zs)).astype(np.float32)
+        out = np.zeros((len(xs), len(ys), len(zs)), dtype=np.float32)
+        for a, w, phase in zip(self.amplitude, self.freq, self.phase):
+            ex = a * np.exp(1j * (w[0] * xs + phase))
+            yz = np.exp(1j * w[1] * ys)[:, None] * np.exp(1j * w[2] * zs)[None, :]
+            # Im(ex yz) = Re(ex) Im(yz) + Im(ex) Re(yz): two real outer products. (Deliberately not a
+            # BLAS matrix product: its rounding depends on the thread count, and the shapes must
+            # be identical for a seed on any machine setting.)
+            out += ex.real.astype(np.float32)[:, None, None] * yz.imag.astype(np.float32)[None]
+            out += ex.imag.astype(np.float32)[:, None, None] * yz.real.astype(np.float32)[None]
+        return out
 
     def at(self, points: np.ndarray) -> np.ndarray:
         """Noise at world points (N, 3) -> (N,) float64."""
-        return np.sin(points @ self.freq.T + self.phase) @ self.amplitude
+        return (np.sin(_matmul3(points, self.freq.T) + self.phase) * self.amplitude).sum(axis=-1)
 
 
 def _sample_noise(rng: np.random.Generator, config: ShapeConfig) -> _Noise:
@@ -356,7 +366,7 @@ def sdf_points(adds: list[Primitive], carves: list[Primitive], noise: _Noise, po
     points = np.asarray(points, dtype=np.float64)
     out = np.full(len(points), 1e3)
     for i, prim in enumerate(adds + carves):
-        local = (points - prim.center) @ prim.rotation
+        local = _matmul3(points - prim.center, prim.rotation)
         d = _primitive_sdf(prim.kind, local[:, 0], local[:, 1], local[:, 2], prim.params)
         out = _smin(out, d, prim.blend) if i < len(adds) else -_smin(-out, d, prim.blend)
     return out + noise.at(points)
