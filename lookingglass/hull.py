@@ -1,0 +1,676 @@
+"""Visual hull: carve the masks into a smooth, watertight mesh (pipeline step 1, DESIGN.md).
+
+Frames. Everything a caller passes in or gets back is in the *capture frame* (the frame of the
+cameras, with the object at any position and scale). The hull also fixes the *normalized frame*
+that every later stage works in: p_n = (p - center) / scale maps the hull into the unit sphere
+(max |p_n| = 1, DESIGN.md "Shapes are normalized to the unit sphere").
+
+Method.
+1. Per view, a signed distance (pixels) to the silhouette boundary: positive inside the mask,
+   negative outside, zero on the pixel edges between object and background (DESIGN.md: carving a
+   continuous field instead of a binary one gives sub-voxel surfaces). Out of the image counts as
+   outside, so an object cut off by the border still gives a bounded hull (with a warning).
+2. The carving box is found from the data: a centre triangulated from the rays through the mask
+   centroids, a generous cube around it sized from the silhouettes' angular extents, then coarse
+   carving -> box of the occupied voxels -> repeat until the box stops shrinking.
+3. The fine carve at `resolution` voxels along the box's longest side: each voxel centre is
+   projected into every view, the pixel field is sampled bilinearly and converted to world units
+   (pixel footprint at the voxel's depth), and views are combined by a minimum (inside all cones).
+4. Marching cubes at level 0, largest component, LS3 Loop subdivision (MeshLab, as the paper's
+   release does) for smooth normals, then a watertightness / orientation check.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import math
+import os
+import time
+import warnings
+from dataclasses import dataclass
+from typing import Callable, Iterator
+
+import numpy as np
+import torch
+import trimesh
+
+from .errors import LookingGlassError
+from .physics.camera import Cameras
+
+ProgressFn = Callable[[str, float], None]
+
+
+@contextlib.contextmanager
+def _torch_threads(n: int) -> Iterator[None]:
+    """Run the block with n torch intra-op threads, then restore the previous setting.
+
+    n > 0: exactly n; n = 0: half the machine's cores (at least 1, at most torch's current
+    setting); n < 0: leave torch's setting alone. Why half: on the 2-core machine with other jobs
+    running, 2 threads made the carve 5x slower than 1 (every op waits at a barrier for a thread
+    the OS has descheduled), while on an idle machine 2 threads gained only ~20%.
+    """
+    if n == 0:
+        n = max(1, min(torch.get_num_threads(), (os.cpu_count() or 2) // 2))
+    if n < 0 or n == torch.get_num_threads():
+        yield
+        return
+    old = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+@dataclass
+class HullConfig:
+    """Settings of `carve_visual_hull`. Plain fields: `dataclasses.asdict` is JSON-serializable.
+
+    resolution: voxels along the longest side of the (padded) carving box; 128 as in the paper.
+    field: "distance" carves the views' signed distances to their silhouettes (sub-voxel surface);
+        "binary" carves plain inside/outside occupancy, as the paper's release did (kept for
+        comparison: its marching-cubes surface keeps the voxel steps, see docs/benchmarks.md).
+    padding: added on every side of the tight box found from the data, as a fraction of the box's
+        longest side (0.02 = 2.6 voxels at 128: room for marching cubes to close the surface).
+    coarse_resolution: voxels along the longest side for the final round of the box search (1/8 of
+        the fine carve's voxels at 64 vs 128); earlier rounds use half of it.
+    box_iterations: most coarse carve -> shrink rounds of the box search.
+    subdivision_iterations, subdivision_threshold: MeshLab "LS3 Loop" subdivision, edges longer
+        than `subdivision_threshold` (fraction of the bounding-box diagonal; DESIGN.md: 1%) are
+        split, `subdivision_iterations` times. 0 iterations = the raw marching-cubes surface.
+    smoothing_iterations: Taubin (lambda/mu, volume preserving) smoothing steps applied to the
+        marching-cubes mesh before subdivision; 0 = none.
+    min_view_coverage, warn_view_coverage: the hull's projection must cover at least this fraction
+        of every view's mask (error below min, warning below warn): a consistency check of masks
+        and cameras (consistent synthetic captures give >= 0.99).
+    chunk_voxels: voxels carved per batch; bounds the memory to ~ 40 bytes x chunk_voxels.
+    num_threads: torch intra-op threads while carving: > 0 exactly that many, 0 = half the cores
+        (see `_torch_threads`), < 0 = torch's current setting.
+    device: torch device for the carving ("cpu", "cuda", ...).
+    """
+
+    resolution: int = 128
+    field: str = "distance"
+    padding: float = 0.02
+    coarse_resolution: int = 64
+    box_iterations: int = 8
+    subdivision_iterations: int = 5
+    subdivision_threshold: float = 0.01
+    smoothing_iterations: int = 0
+    min_view_coverage: float = 0.5
+    warn_view_coverage: float = 0.9
+    chunk_voxels: int = 1 << 20
+    num_threads: int = 0
+    device: str = "cpu"
+
+
+@dataclass
+class VisualHull:
+    """A carved visual hull.
+
+    mesh: watertight, outward-oriented triangle mesh, capture frame.
+    center: (3,) float64 and scale: float, capture frame: (p - center) / scale maps the hull into the
+        unit sphere with max |p| = 1 (the normalization every later stage uses).
+    bbox: (2, 3) float64, the carving box [min, max] in the capture frame.
+    voxel_size: edge of one fine voxel, capture-frame units.
+    grid_shape: (nx, ny, nz) voxel samples of the fine carve.
+    view_coverage: (V,) fraction of each view's mask that the hull's projection covers (~1 when the
+        masks and cameras agree).
+    timings: seconds per sub-step ("masks", "box", "carve", "coverage", "marching_cubes",
+        "components", "subdivision", "finish") and "total".
+    """
+
+    mesh: trimesh.Trimesh
+    center: np.ndarray
+    scale: float
+    bbox: np.ndarray
+    voxel_size: float
+    grid_shape: tuple[int, int, int]
+    view_coverage: np.ndarray
+    timings: dict[str, float] = dataclasses.field(default_factory=dict)
+
+    def mesh_normalized(self) -> trimesh.Trimesh:
+        """A copy of the hull in the normalized frame (inside the unit sphere, max |p| = 1)."""
+        m = self.mesh.copy()
+        m.vertices = (np.asarray(self.mesh.vertices) - self.center) / self.scale
+        return m
+
+    def normalize_points(self, points: np.ndarray) -> np.ndarray:
+        """Capture frame -> normalized frame. points: (..., 3)."""
+        return (np.asarray(points, dtype=np.float64) - self.center) / self.scale
+
+    def denormalize_points(self, points: np.ndarray) -> np.ndarray:
+        """Normalized frame -> capture frame. points: (..., 3)."""
+        return np.asarray(points, dtype=np.float64) * self.scale + self.center
+
+    def cameras_normalized(self, cameras: Cameras) -> Cameras:
+        """The capture's cameras expressed in the normalized frame."""
+        return cameras.transformed(torch.as_tensor(self.center), self.scale)
+
+
+# ---------------------------------------------------------------------------------------------
+# Per-view silhouette fields
+# ---------------------------------------------------------------------------------------------
+
+# The field images get this many pixels of background around the image, so that sampling beyond
+# the image border (grid_sample padding_mode="border" replicates the edge) reads "outside".
+_PAD = 2
+
+
+def _as_bool_masks(masks) -> np.ndarray:
+    if isinstance(masks, torch.Tensor):
+        masks = masks.detach().cpu().numpy()
+    masks = np.asarray(masks)
+    if masks.ndim != 3:
+        raise LookingGlassError(f"masks must have shape (views, height, width), got {masks.shape}")
+    return masks.astype(bool, copy=False)
+
+
+def silhouette_fields(masks: np.ndarray) -> np.ndarray:
+    """Signed distance (pixels) of every pixel centre to its view's silhouette boundary.
+
+    masks: (V, H, W) bool. Returns (V, H + 2*_PAD, W + 2*_PAD) float32, the image padded with
+    background: positive inside the mask, negative outside. The boundary is put on the pixel edges
+    (distances shifted by half a pixel), so bilinear sampling crosses zero exactly between an object
+    pixel centre (+0.5) and a background pixel centre (-0.5).
+    """
+    import cv2
+
+    V, H, W = masks.shape
+    out = np.empty((V, H + 2 * _PAD, W + 2 * _PAD), np.float32)
+    for v in range(V):  # cv2 works per image; ~1 ms each
+        m = np.zeros((H + 2 * _PAD, W + 2 * _PAD), np.uint8)
+        m[_PAD:_PAD + H, _PAD:_PAD + W] = masks[v]
+        # distanceTransform: distance from each non-zero pixel to the nearest zero pixel (centres).
+        d_in = cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        d_out = cv2.distanceTransform(1 - m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        out[v] = np.where(m > 0, d_in - 0.5, 0.5 - d_out)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Carving
+# ---------------------------------------------------------------------------------------------
+
+class _Carver:
+    """Evaluates the combined silhouette field on regular grids.
+
+    The field at a capture-frame point p is min over views of s_v(p) = (bilinear pixel field at
+    p's projection) x (p's depth) x (pixel pitch at unit depth): the view's signed distance to the
+    silhouette in world units (approximately the distance to that view's silhouette cone), so the
+    min over views is comparable across views at different distances and marching cubes
+    interpolates it linearly in space. Behind a camera counts as far outside.
+    """
+
+    def __init__(self, fields: np.ndarray, cameras: Cameras, device: str, chunk_voxels: int):
+        self.device = torch.device(device)
+        self.V = cameras.num_views
+        W, H = cameras.width, cameras.height
+        self.cams64 = cameras.to(dtype=torch.float64, device="cpu")
+        tx = self.cams64.tan_half_fov_x
+        ty = tx * (H / W)
+        # Pixel pitch at unit depth (square pixels), folded into the fields so that field x depth
+        # is in world units.
+        pitch = (2 * tx / W).to(torch.float32)
+        f = torch.from_numpy(fields) * pitch[:, None, None]
+        self.fields = f.to(self.device).unsqueeze(1).contiguous()  # (V, 1, Hp, Wp)
+        self.chunk = int(chunk_voxels)
+        # Rows of the projection (before the divide by depth) giving grid_sample coordinates of the
+        # padded image directly: g_x = x_ndc * W / (W + 2 pad), g_y = -y_ndc * H / (H + 2 pad)
+        # (grid y runs down the image), and the depth along forward.
+        sx = (1.0 / tx) * (W / (W + 2 * _PAD))
+        sy = -(1.0 / ty) * (H / (H + 2 * _PAD))
+        B = self.cams64.basis  # (V, 3, 3) rows right, up, forward
+        self.rows = torch.stack([B[:, 0] * sx[:, None], B[:, 1] * sy[:, None], B[:, 2]], dim=1)  # (V,3,3)
+
+    def carve(self, lo: np.ndarray, h: float, shape: tuple[int, int, int],
+              far: float) -> torch.Tensor:
+        """Field at the grid points lo + (i, j, k) * h, i < shape[0] etc. (capture frame).
+
+        Returns (nx, ny, nz) float32 on the device, world units, positive inside the hull.
+        `far` is the value given to points behind a camera (large negative magnitude).
+        """
+        nx, ny, nz = shape
+        dev = self.device
+        # Projection of grid index (i, j, k, 1): rows (V, 3, 3) times h plus a translation computed
+        # in float64 from lo - origin, so float32 keeps full precision at any capture position.
+        lo64 = torch.as_tensor(lo, dtype=torch.float64)
+        trans = torch.einsum("vjk,vk->vj", self.rows, lo64 - self.cams64.origin)  # (V, 3)
+        P = torch.cat([self.rows * h, trans[:, :, None]], dim=2)  # (V, 3, 4), float64
+        P_t = P.transpose(1, 2).to(torch.float32).to(dev).contiguous()  # (V, 4, 3)
+        jj, kk = torch.meshgrid(torch.arange(ny, dtype=torch.float32, device=dev),
+                                torch.arange(nz, dtype=torch.float32, device=dev), indexing="ij")
+        plane = torch.stack([jj.flatten(), kk.flatten()], dim=1)  # (ny*nz, 2)
+        out = torch.empty((nx, ny * nz), dtype=torch.float32, device=dev)
+        slab = max(1, self.chunk // (ny * nz))  # x-slabs per chunk
+        for i0 in range(0, nx, slab):
+            i1 = min(nx, i0 + slab)
+            m = (i1 - i0) * ny * nz
+            X = torch.empty((i1 - i0, ny * nz, 4), dtype=torch.float32, device=dev)  # (i, j, k, 1)
+            X[..., 0] = torch.arange(i0, i1, dtype=torch.float32, device=dev)[:, None]
+            X[..., 1:3] = plane
+            X[..., 3] = 1.0
+            X = X.view(m, 4)
+            # Depth is affine in the indices, so its minimum over the chunk is at a corner: when all
+            # corners are in front of every camera (the usual case) the per-voxel test is skipped.
+            corners = torch.tensor([[i, j, k, 1.0] for i in (i0, i1 - 1) for j in (0, ny - 1)
+                                    for k in (0, nz - 1)], dtype=torch.float64)
+            min_depth = torch.einsum("ck,vk->vc", corners, P[:, 2]).min(dim=1).values  # (V,)
+            acc = out[i0:i1].view(m)
+            grid = torch.empty((1, 1, m, 2), dtype=torch.float32, device=dev)
+            for v in range(self.V):  # loop over views only; each view is a few vectorized passes
+                proj = X @ P_t[v]  # (m, 3): scaled x, scaled y, depth
+                depth = proj[:, 2]
+                torch.div(proj[:, :2], depth[:, None], out=grid.view(m, 2))
+                s = torch.nn.functional.grid_sample(
+                    self.fields[v:v + 1], grid, mode="bilinear", padding_mode="border",
+                    align_corners=False).view(m)
+                s.mul_(depth)
+                if min_depth[v] <= 0:
+                    s = torch.where(depth > 0, s, torch.full_like(s, far))
+                if v == 0:
+                    acc.copy_(s)
+                else:
+                    torch.minimum(acc, s, out=acc)
+        return out.view(nx, ny, nz)
+
+
+def _triangulate_center(masks: np.ndarray, cameras: Cameras) -> np.ndarray:
+    """Least-squares point closest to the rays through each mask's centroid. Returns (3,) float64.
+
+    Minimizes sum_v |(I - d_v d_v^T)(p - o_v)|^2, i.e. solves sum_v P_v p = sum_v P_v o_v.
+    """
+    V, H, W = masks.shape
+    rows = np.arange(H, dtype=np.float64) + 0.5
+    cols = np.arange(W, dtype=np.float64) + 0.5
+    area = masks.sum(axis=(1, 2)).astype(np.float64)
+    cy = (masks.sum(axis=2) * rows).sum(axis=1) / area
+    cx = (masks.sum(axis=1) * cols).sum(axis=1) / area
+    cams = cameras.to(dtype=torch.float64, device="cpu")
+    d = cams.directions_at(torch.from_numpy(cx), torch.from_numpy(cy)).numpy()  # (V, 3)
+    o = cams.origin.numpy()
+    P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]  # (V, 3, 3) projectors off each ray
+    A = P.sum(axis=0)
+    b = np.einsum("vij,vj->i", P, o)
+    # A is singular only when all centroid rays are parallel (views from one direction): lstsq
+    # then returns the least-norm point of the solution line, and the box search that follows
+    # reports the unbounded hull.
+    return np.linalg.lstsq(A, b, rcond=1e-9)[0]
+
+
+def _initial_half_size(masks: np.ndarray, cameras: Cameras, center: np.ndarray) -> float:
+    """A generous half-size of a cube around `center` that holds the hull.
+
+    Per view, the silhouette's angular radius alpha around the direction to `center` bounds the
+    object's extent across that view to about dist * tan(alpha); twice the largest such bound is
+    a cube that (for views from different directions) holds the whole hull. The box search grows
+    the cube if the hull still reaches its faces.
+    """
+    cams = cameras.to(dtype=torch.float64, device="cpu")
+    xy, depth = cams.project(torch.from_numpy(center)[None])  # (V, 1, 2)
+    dist = np.linalg.norm(cams.origin.numpy() - center, axis=1)
+    sizes = []
+    for v in range(masks.shape[0]):
+        ys, xs = np.nonzero(masks[v])
+        # Only the silhouette's extreme pixels matter: its bounding-box corners bound every angle.
+        corners_x = np.array([xs.min(), xs.max() + 1, xs.min(), xs.max() + 1], np.float64)
+        corners_y = np.array([ys.min(), ys.min(), ys.max() + 1, ys.max() + 1], np.float64)
+        dirs = cams.select(v).directions_at(torch.from_numpy(corners_x)[None],
+                                            torch.from_numpy(corners_y)[None])[0].numpy()
+        to_c = (center - cams.origin[v].numpy()) / max(dist[v], 1e-12)
+        cos_a = np.clip(dirs @ to_c, -1.0, 1.0).min()
+        if depth[v, 0] <= 0 or cos_a <= 0.05:  # centre behind the view or a near-180 deg spread
+            sizes.append(dist[v])
+        else:
+            sizes.append(dist[v] * math.tan(math.acos(cos_a)))
+    return 2.0 * float(max(sizes))
+
+
+def _occupied_bounds(field: torch.Tensor, threshold: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Index bounds [imin, imax] (each (3,) int) of grid points with field > threshold, or None."""
+    occ = field > threshold
+    if not bool(occ.any()):
+        return None
+    lo, hi = [], []
+    for axis in range(3):
+        others = tuple(a for a in range(3) if a != axis)
+        idx = torch.nonzero(occ.any(dim=others[1]).any(dim=others[0])).flatten()
+        lo.append(int(idx[0]))
+        hi.append(int(idx[-1]))
+    return np.array(lo), np.array(hi)
+
+
+def _grid_for_box(lo: np.ndarray, hi: np.ndarray, resolution: int) -> tuple[np.ndarray, float, tuple]:
+    """Regular grid over [lo, hi] with `resolution` voxels along the longest side.
+
+    Returns (origin (3,), voxel size h, shape): sample points are origin + index * h; the grid is
+    centred on the box and covers it.
+    """
+    ext = hi - lo
+    h = float(ext.max()) / resolution
+    n = np.ceil(ext / h - 1e-6).astype(int) + 1
+    origin = (lo + hi) / 2 - (n - 1) * h / 2
+    return origin, h, tuple(int(x) for x in n)
+
+
+def _find_box(carver: _Carver, masks: np.ndarray, cameras: Cameras,
+              config: HullConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Tight box [lo, hi] (each (3,), capture frame) holding the hull, found by coarse carving.
+
+    A round carves a grid over the current box; the new box is the occupied grid points' bounds
+    plus one coarse voxel. A grid point counts as occupied when the field there exceeds minus one
+    voxel: a voxel cell that touches the hull has its centre within sqrt(3)/2 voxels of it, and the
+    field is roughly a distance, so the test keeps every cell the hull touches. Where the occupied
+    region reaches the box's face the hull may continue beyond, so that side is pushed out by the
+    box's size. Rounds at half `coarse_resolution` repeat until no side moves by more than a
+    quarter voxel; one last round at `coarse_resolution` tightens the box to ~1/64 of its size.
+    """
+    center = _triangulate_center(masks, cameras)
+    half = _initial_half_size(masks, cameras, center)
+    lo, hi = center - half, center + half
+    cam_dist = float(np.linalg.norm(cameras.origin.double().cpu().numpy() - center, axis=1).max())
+
+    def one_round(lo: np.ndarray, hi: np.ndarray, res: int):
+        origin, h, shape = _grid_for_box(lo, hi, res)
+        field = carver.carve(origin, h, shape, far=-float(np.linalg.norm(hi - lo)))
+        bounds = _occupied_bounds(field, -h)
+        if bounds is None:
+            raise LookingGlassError(
+                "the visual hull is empty: no point lies inside every view's mask. The masks do not "
+                "agree with the cameras (wrong camera poses, masks in a different order than the "
+                "cameras, or a mask of another object)")
+        imin, imax = bounds
+        touch_lo, touch_hi = imin == 0, imax == np.array(shape) - 1
+        new_lo = np.where(touch_lo, lo - (hi - lo), origin + (imin - 1) * h)
+        new_hi = np.where(touch_hi, hi + (hi - lo), origin + (imax + 1) * h)
+        touched = bool(np.any(touch_lo | touch_hi))
+        if touched and float((new_hi - new_lo).max()) > 100 * cam_dist:
+            raise LookingGlassError(
+                "the visual hull is unbounded: the silhouettes do not close it off. Views from "
+                "several directions are needed, and each mask must lie inside its image")
+        moved = max(float(np.abs(new_lo - lo).max()), float(np.abs(new_hi - hi).max()))
+        return new_lo, new_hi, touched, moved <= 0.25 * h
+
+    for _ in range(config.box_iterations):
+        lo, hi, touched, small_move = one_round(lo, hi, max(8, config.coarse_resolution // 2))
+        if not touched and small_move:
+            break
+    else:
+        if touched:
+            raise LookingGlassError(
+                "could not bound the visual hull: it keeps reaching the search box. Check that the "
+                "views look at the object from several directions")
+    # A touch in the final round only grows that side; the fine carve checks its faces again.
+    lo, hi, _, _ = one_round(lo, hi, config.coarse_resolution)
+    return lo, hi
+
+
+# ---------------------------------------------------------------------------------------------
+# Mesh
+# ---------------------------------------------------------------------------------------------
+
+def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Volume enclosed by a closed triangle mesh; positive when its faces wind outward."""
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    return float(np.einsum("ij,ij->", a, np.cross(b, c))) / 6.0
+
+
+def _largest_component(vertices: np.ndarray, faces: np.ndarray,
+                       min_volume: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """Keep the connected component with the most faces.
+
+    vertices (N, 3), faces (F, 3), closed and outward. Returns the kept vertices and faces and the
+    number of dropped pieces larger than `min_volume` (pieces under one voxel are specks where the
+    field grazes zero at a single sample, below the carving's resolution: dropped silently).
+    """
+    import scipy.sparse
+    import scipy.sparse.csgraph
+
+    n = len(vertices)
+    # Vertex graph through face edges (a->b, b->c); connectivity is all that matters.
+    rows = np.concatenate([faces[:, 0], faces[:, 1]])
+    cols = np.concatenate([faces[:, 1], faces[:, 2]])
+    g = scipy.sparse.coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(n, n))
+    ncomp, label = scipy.sparse.csgraph.connected_components(g, directed=False)
+    if ncomp <= 1:
+        return vertices, faces, 0
+    face_label = label[faces[:, 0]]
+    counts = np.bincount(face_label, minlength=ncomp)
+    keep_label = int(np.argmax(counts))
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    piece_volume = np.bincount(face_label, weights=np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0,
+                               minlength=ncomp)
+    big = (counts > 0) & (np.abs(piece_volume) > min_volume)
+    big[keep_label] = False
+    dropped = int(big.sum())
+    faces = faces[face_label == keep_label]
+    used = np.zeros(n, bool)
+    used[faces.ravel()] = True
+    remap = np.cumsum(used) - 1
+    return vertices[used], remap[faces], dropped
+
+
+def _taubin(vertices: np.ndarray, faces: np.ndarray, iterations: int) -> np.ndarray:
+    """Taubin lambda/mu smoothing (no shrinkage), uniform weights. vertices (N, 3) float64."""
+    import scipy.sparse
+
+    n = len(vertices)
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    e = np.concatenate([e, e[:, ::-1]])
+    A = scipy.sparse.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
+    A.data[:] = 1.0  # duplicates (each interior edge appears twice) -> 1
+    deg = np.asarray(A.sum(axis=1)).ravel()
+    Wn = scipy.sparse.diags(1.0 / np.maximum(deg, 1)) @ A
+    v = vertices.copy()
+    for _ in range(iterations):
+        for f in (0.5, -0.53):
+            v = v + f * (Wn @ v - v)
+    return v
+
+
+def _ls3_loop(vertices: np.ndarray, faces: np.ndarray, iterations: int,
+              threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """MeshLab LS3 Loop subdivision (Boye et al. 2010), via pymeshlab.
+
+    threshold: fraction of the bounding-box diagonal; edges longer than it are split.
+    """
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(vertices, np.float64),
+                               face_matrix=np.ascontiguousarray(faces, np.int32)))
+    ms.meshing_surface_subdivision_ls3_loop(
+        loopweight="Loop", iterations=int(iterations),
+        threshold=pymeshlab.PercentageValue(100.0 * threshold))
+    m = ms.current_mesh()
+    return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
+
+
+def _view_coverage(volume: torch.Tensor, origin: np.ndarray, h: float, masks: np.ndarray,
+                   cameras: Cameras) -> np.ndarray:
+    """Fraction of each view's mask that the hull's projection covers. Returns (V,) float64.
+
+    With consistent masks and cameras every mask pixel's ray meets the hull, so this is ~1; a view
+    whose silhouette the hull explains only in part points at a wrong pose, a mask of another
+    view, or a mask that disagrees with the others. Cheap approximation: the occupied voxels of
+    the fine grid at stride 2 are projected and splatted into blocks of f x f pixels, f about the
+    projected stride, and the splat is dilated by one block (a voxel's centre projects within a
+    block of every pixel its cell covers).
+    """
+    import cv2
+
+    occ = torch.nonzero(volume[::2, ::2, ::2] > 0).cpu().to(torch.float64) * (2 * h)
+    pts = occ + torch.as_tensor(origin, dtype=torch.float64)  # (N, 3), capture frame
+    cams = cameras.to(dtype=torch.float64, device="cpu")
+    V, H, W = masks.shape
+    centre = pts.mean(dim=0, keepdim=True)
+    _, depth_c = cams.project(centre)  # (V, 1)
+    pitch = (2 * cams.tan_half_fov_x / W) * depth_c[:, 0].clamp_min(1e-12)  # world size of a pixel
+    xy, depth = cams.project(pts)  # (V, N, 2), (V, N)
+    cover = np.ones(V)
+    for v in range(V):
+        f = int(max(1, math.ceil(2 * h / float(pitch[v]))))
+        hb, wb = -(-H // f), -(-W // f)
+        blocks = np.zeros((hb * f, wb * f), bool)
+        blocks[:H, :W] = masks[v]
+        m_small = blocks.reshape(hb, f, wb, f).any(axis=(1, 3))
+        ok = depth[v] > 0
+        c = torch.floor(xy[v, ok] / f).long().numpy()
+        inside = (c[:, 0] >= 0) & (c[:, 0] < wb) & (c[:, 1] >= 0) & (c[:, 1] < hb)
+        splat = np.zeros((hb, wb), np.uint8)
+        splat[c[inside, 1], c[inside, 0]] = 1
+        splat = cv2.dilate(splat, np.ones((3, 3), np.uint8)) > 0
+        cover[v] = (m_small & splat).sum() / max(1, m_small.sum())
+    return cover
+
+
+# ---------------------------------------------------------------------------------------------
+# Entry point
+# ---------------------------------------------------------------------------------------------
+
+def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig(),
+                      progress: ProgressFn | None = None) -> VisualHull:
+    """Carve the visual hull of V silhouettes.
+
+    masks: (V, H, W) bool, numpy or torch (object = True); H, W = the cameras' image size.
+    cameras: the V views, capture frame (any position and scale of the object).
+    config: see `HullConfig`.
+    progress: optional callback progress(sub_step, fraction_done) for a progress bar; called after
+        each sub-step with its name (the keys of `VisualHull.timings`).
+    Returns a `VisualHull` in the capture frame. Raises `LookingGlassError` when the inputs do not
+    match, a mask is empty, the hull is empty or unbounded, or the hull explains less than
+    `config.min_view_coverage` of some view's mask (masks and cameras disagree). Warns
+    (warnings.warn) when a mask touches its image border (the object is cut off there: the hull is
+    clipped to the image), when a view's coverage is below `config.warn_view_coverage`, and when
+    pieces of the hull disconnected from the largest one are dropped.
+    """
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    clock = [t_start]
+
+    def step(name: str, fraction: float) -> None:
+        now = time.perf_counter()
+        timings[name] = now - clock[0]
+        clock[0] = now
+        if progress is not None:
+            progress(name, fraction)
+
+    if config.field not in ("distance", "binary"):
+        raise ValueError(f'HullConfig.field must be "distance" or "binary", not {config.field!r}')
+    if min(config.resolution, config.coarse_resolution) < 8:
+        raise ValueError("HullConfig.resolution and coarse_resolution must be at least 8")
+    masks = _as_bool_masks(masks)
+    V, H, W = masks.shape
+    if V != cameras.num_views:
+        raise LookingGlassError(f"{V} masks for {cameras.num_views} cameras")
+    if (W, H) != (cameras.width, cameras.height):
+        raise LookingGlassError(
+            f"masks are {W}x{H} pixels but the cameras are {cameras.width}x{cameras.height}")
+    if V < 2:
+        raise LookingGlassError("a visual hull needs at least 2 views")
+    areas = masks.sum(axis=(1, 2))
+    if np.any(areas == 0):
+        raise LookingGlassError(f"the mask of view(s) {np.flatnonzero(areas == 0).tolist()} is empty")
+    border = masks[:, 0, :].any(1) | masks[:, -1, :].any(1) | masks[:, :, 0].any(1) | masks[:, :, -1].any(1)
+    if np.any(border):
+        warnings.warn(
+            f"the mask of view(s) {np.flatnonzero(border).tolist()} touches the image border: the "
+            "object is cut off there, and the hull is clipped to the image (outside counts as "
+            "background)", stacklevel=2)
+
+    with _torch_threads(config.num_threads), torch.inference_mode():
+        fields = silhouette_fields(masks)
+        carver = _Carver(fields, cameras, config.device, config.chunk_voxels)
+        step("masks", 0.05)
+
+        lo, hi = _find_box(carver, masks, cameras, config)
+        pad = config.padding * float((hi - lo).max())
+        lo, hi = lo - pad, hi + pad
+        step("box", 0.1)
+
+        origin, h, shape = _grid_for_box(lo, hi, config.resolution)
+        far = -float(np.linalg.norm(hi - lo))
+        vol = carver.carve(origin, h, shape, far=far)
+        # Safety net: the coarse search is conservative, but if the hull still reaches the grid's
+        # faces, grow that side and carve again rather than clip the hull flat.
+        for _ in range(3):
+            touch = np.array([[float(vol[0].max()) > 0, float(vol[-1].max()) > 0],
+                              [float(vol[:, 0].max()) > 0, float(vol[:, -1].max()) > 0],
+                              [float(vol[:, :, 0].max()) > 0, float(vol[:, :, -1].max()) > 0]])
+            if not touch.any():
+                break
+            grow = 0.1 * float((hi - lo).max())
+            lo = lo - grow * touch[:, 0]
+            hi = hi + grow * touch[:, 1]
+            origin, h, shape = _grid_for_box(lo, hi, config.resolution)
+            vol = carver.carve(origin, h, shape, far=far)
+        if config.field == "binary":
+            vol = torch.where(vol > 0, 0.5 * h, -0.5 * h)
+        step("carve", 0.6)
+
+        if not bool((vol > 0).any()):
+            raise LookingGlassError(
+                "the visual hull is empty at the carving resolution: the masks do not agree with "
+                "the cameras (or the object is thinner than a voxel)")
+        coverage = _view_coverage(vol, origin, h, masks, cameras)
+        bad = np.flatnonzero(coverage < config.min_view_coverage)
+        if len(bad):
+            raise LookingGlassError(
+                f"the masks do not agree with the cameras: the visual hull covers only "
+                f"{', '.join(f'{100 * coverage[v]:.0f}%' for v in bad)} of the mask of view(s) "
+                f"{bad.tolist()} (a wrong camera pose, masks in another order than the cameras, or "
+                f"a mask of another object)")
+        low = np.flatnonzero(coverage < config.warn_view_coverage)
+        if len(low):
+            warnings.warn(
+                f"the visual hull covers only {', '.join(f'{100 * coverage[v]:.0f}%' for v in low)} "
+                f"of the mask of view(s) {low.tolist()}: some masks or camera poses are off",
+                stacklevel=2)
+        volume = vol.cpu().numpy()
+    step("coverage", 0.65)
+
+    from skimage.measure import marching_cubes
+
+    # Samples exactly at the level make zero-area triangles; nudge them off it (far below the
+    # float32 resolution of the surface position).
+    volume[volume == 0] = -1e-7 * h
+    # One layer of "outside" around the grid guarantees a closed surface.
+    volume = np.pad(volume, 1, mode="constant", constant_values=-h)
+    verts, faces, _, _ = marching_cubes(volume, level=0.0, spacing=(h, h, h), allow_degenerate=True)
+    verts = verts.astype(np.float64) + (origin - h)  # undo the padding layer; capture frame
+    faces = faces.astype(np.int64)
+    # Orient outward before subdivision (LS3 fits with the normals): rather than rely on
+    # skimage's winding convention, flip when the signed volume is negative.
+    if _signed_volume(verts, faces) < 0:
+        faces = faces[:, ::-1].copy()
+    step("marching_cubes", 0.75)
+
+    verts, faces, dropped = _largest_component(verts, faces, min_volume=h ** 3)
+    if dropped:
+        warnings.warn(f"the visual hull has {dropped + 1} separate pieces; kept the largest, dropped "
+                      f"{dropped} (stray mask pixels or an inconsistent view?)", stacklevel=2)
+    step("components", 0.8)
+
+    if config.smoothing_iterations > 0:
+        verts = _taubin(verts, faces, config.smoothing_iterations)
+    if config.subdivision_iterations > 0:
+        verts, faces = _ls3_loop(verts, faces, config.subdivision_iterations,
+                                 config.subdivision_threshold)
+    step("subdivision", 0.95)
+
+    # Marching cubes and MeshLab both return shared vertices, so no merging (process=False keeps
+    # the topology exactly as built; merging coincident vertices could pinch it).
+    mesh = trimesh.Trimesh(verts, faces, process=False, validate=False)
+    if not (mesh.is_watertight and mesh.is_winding_consistent):
+        raise LookingGlassError(
+            "internal error: the carved hull is not a closed, consistently oriented surface "
+            "(please report it, with the masks and cameras)")
+    if mesh.volume < 0:  # consistent winding: positive volume <=> outward normals
+        mesh.invert()
+    center = (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0)) / 2
+    scale = float(np.linalg.norm(mesh.vertices - center, axis=1).max())
+    step("finish", 1.0)
+    timings["total"] = time.perf_counter() - t_start
+    return VisualHull(mesh=mesh, center=center, scale=scale, bbox=np.stack([lo, hi]),
+                      voxel_size=h, grid_shape=shape, view_coverage=coverage, timings=timings)
