@@ -63,30 +63,30 @@ def _rel_mae(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
 # ---------------------------------------------------------------------------------------------
 # full light transport vs Mitsuba 3
 # ---------------------------------------------------------------------------------------------
-@pytest.mark.slow  # ~10-20 s per shape, almost all of it Mitsuba
+@pytest.mark.slow  # ~8 s per shape on an idle 2-core machine (~25 s loaded), almost all Mitsuba
 @pytest.mark.parametrize("shape", ["sphere", "blob"])
 def test_image_matches_mitsuba(shape, env_small):
     """Inside the mask, our deterministic-branching image equals Mitsuba's `path` render of the
     same smooth dielectric, to a relative MAE of 3 %.
 
     Why 3 % and how it splits: Mitsuba samples one Fresnel branch per bounce and its pixels on
-    a uniform random grid, so even its 2 x 2048-spp reference is noisy. Its own noise is
-    measured from two renders with different seeds: their relative MAE e_pair is 4.4 % (sphere)
-    and 3.8 % (blob) at 48 x 36 with this map, so each is ~e_pair/sqrt 2 from the truth and
-    their average, our reference, ~e_pair/2 ~ 2 %. Our 24 x 24 stratified samples with
-    deterministic Fresnel branching are nearly converged (pruning bias ~1e-4), so our error vs
-    the reference should sit at that noise floor: measured 2.1 % and 1.8 %. We assert
-    (1) relMAE <= 3 % (the brief's target; ~1.4x the noise floor), (2) our excess over the
-    floor, sqrt(err^2 - (e_pair/2)^2), <= 1.5 % (measured ~0), and (3) the mean over the
-    mask, where the noise averages out, agrees to 0.5 % (measured +0.03 % and +0.09 %): a
-    Fresnel, depth or energy error would show there. Mitsuba's seeds are fixed: no flakiness.
+    a uniform random grid, so even its 2 x 4096-spp reference is noisy. Its own noise is
+    measured from two renders with different seeds: their relative MAE e_pair is ~3.1 %
+    (sphere) and ~2.7 % (blob) at 48 x 36 with this map (4.4 % and 3.8 % at 2048 spp), so
+    each is ~e_pair/sqrt 2 from the truth and their average, our reference, ~e_pair/2 ~ 1.5 %.
+    Our 24 x 24 stratified samples with deterministic Fresnel branching are nearly converged
+    (pruning bias ~1e-4), so our error vs the reference should sit at that noise floor, and
+    does (printed). We assert (1) relMAE <= 3 % (the brief's target; ~2x the noise floor),
+    (2) our excess over the floor, sqrt(err^2 - (e_pair/2)^2), <= 1 %, and (3) the mean over
+    the mask, where the noise averages out, agrees to 0.5 % (measured <= 0.1 %): a Fresnel,
+    depth or energy error would show there. Mitsuba's seeds are fixed: no flakiness.
     Max depth: 24 interfaces for us = Mitsuba's max_depth 25 (it counts the emitter vertex).
     """
     mitsuba_ref = pytest.importorskip("mitsuba_ref")
     mesh = _sphere() if shape == "sphere" else radial_blob(0)
     cams = _one_view(48, 36)
     depth = 24
-    spp = 2048
+    spp = 4096
     a = mitsuba_ref.render_glass(mesh, env_small, cams, IOR, EXT_IOR, spp, max_depth=depth + 1, seed=0)
     b = mitsuba_ref.render_glass(mesh, env_small, cams, IOR, EXT_IOR, spp, max_depth=depth + 1, seed=1)
     ref = 0.5 * (a + b)
@@ -102,7 +102,7 @@ def test_image_matches_mitsuba(shape, env_small):
           f"(reference noise ~{e_pair / 2:.4f}), excess {excess:.4f}, mean bias {bias:+.4f}, "
           f"pruned {ours.stats.pruned_energy:.1e}, truncated {ours.stats.truncated_energy:.1e}")
     assert err <= 0.03
-    assert excess <= 0.015
+    assert excess <= 0.01
     assert abs(bias) <= 0.005
 
     # Pixels well away from the object (its mask dilated by 2 px) show the box-filtered
@@ -300,6 +300,16 @@ def test_deterministic_per_seed():
     assert torch.equal(a, b)
     assert not torch.equal(a, c)
     assert float((a - c).abs().mean() / a.mean()) < 0.1
+
+
+def test_thread_count_changes_only_rounding():
+    """Samples are fixed by (seed, view, index), not by which worker draws them."""
+    mesh = radial_blob(5)
+    cams = _views(40, 30)
+    env = EnvironmentMap(torch.rand(16, 32, 3))
+    one = render_views(mesh, env, cams, RenderConfig(threads=1, chunk_rays=20000)).image
+    two = render_views(mesh, env, cams, RenderConfig(threads=2)).image
+    assert torch.allclose(one, two, rtol=1e-5, atol=1e-6)
 
 
 def test_config_validation():

@@ -31,6 +31,8 @@ from __future__ import annotations
 import math
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -63,8 +65,8 @@ class RenderConfig:
         when `prune_rest` (exact for a constant environment; the residual bias is measured in
         tests/test_render.py and docs/benchmarks_render.md).
     device: torch device for the shading arithmetic (Embree itself always runs on the CPU).
-    chunk_rays: primary rays traced together (bounds memory: ~200 bytes per live branch).
-    threads: Embree threads (None: all CPUs).
+    chunk_rays: most live branches in one worker's wavefront (bounds memory: ~200 bytes each).
+    threads: worker threads (None: all CPUs); each runs its own wavefront.
     """
 
     ior: float = IOR_GLASS
@@ -192,9 +194,9 @@ class _Surface:
         vn = torch.tensor(self.caster.vertex_normals, dtype=torch.float32)
         self.tri_normals = vn[faces].to(self.device)  # (F, 3 vertices, 3)
         self.threads = threads or os.cpu_count() or 1
-        self.rays_cast = 0
 
-    def cast(self, origins: Tensor, dirs: Tensor, offset: bool) -> tuple[Tensor, Tensor, Tensor]:
+    def cast(self, origins: Tensor, dirs: Tensor, offset: bool,
+             threads: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """First hits of rays (N, 3) float32. Secondary rays (offset=True) start `epsilon` along
         their direction so they do not re-hit their own surface point.
 
@@ -202,10 +204,9 @@ class _Surface:
         smooth normals (K, 3, outward). (Index tensors rather than boolean masks: torch
         re-runs nonzero() on every boolean indexing, which dominated the hot loop.)
         """
-        self.rays_cast += len(origins)
         o_np = origins.detach().to("cpu", torch.float32).numpy()
         d_np = dirs.detach().to("cpu", torch.float32).numpy()
-        t, face, u, v = self.caster.intersect_raw(o_np, d_np, offset=offset, threads=self.threads)
+        t, face, u, v = self.caster.intersect_raw(o_np, d_np, offset=offset, threads=threads or self.threads)
         idx_np = np.flatnonzero(face >= 0)
         t_h = t[idx_np] + np.float32(self.caster.epsilon if offset else 0.0)  # from the caller's origin
         idx = torch.from_numpy(idx_np).to(self.device)
@@ -314,56 +315,70 @@ def mean_radiance(envmap: EnvironmentMap) -> Tensor:
     return (rows * w[:, None]).sum(0) / w.sum()
 
 
+def _hash32(x: Tensor) -> Tensor:
+    """PCG-style 32-bit integer hash (Jarzynski & Olano 2020) of int64 values in [0, 2^32),
+    in int64 arithmetic that never overflows (every product stays below 2^62)."""
+    x = (x * 747796405 + 2891336453) & 0xFFFFFFFF
+    word = ((torch.bitwise_right_shift(x, torch.bitwise_right_shift(x, 28) + 4) ^ x) * 277803737) & 0xFFFFFFFF
+    return torch.bitwise_right_shift(word, 22) ^ word
+
+
 class _CameraSamples:
-    """Stratified (optionally jittered) sub-pixel camera samples of all views, handed out in
-    slices. Samples of one view are ordered (sub-pixel k, row, col); a slice takes the same
-    index range from every view so `Cameras.directions_at` gets (V, n) coordinates."""
+    """Stratified (optionally jittered) sub-pixel camera samples of all views, in blocks.
+
+    Samples of one view are ordered (sub-pixel k, row, col); a block takes the same index range
+    [a, b) from every view, so `Cameras.directions_at` gets (V, n) coordinates. The jitter is a
+    hash of (seed, view, sample index): a sample is the same whichever block or thread draws it.
+    """
 
     def __init__(self, cameras: Cameras, cfg: RenderConfig, device: torch.device):
         self.cams = cameras.to(dtype=torch.float32, device=device)
         self.V, self.H, self.W = cameras.num_views, cameras.height, cameras.width
         self.s, self.jitter, self.device = cfg.samples_per_axis, cfg.jitter, device
         self.per_view = self.s * self.s * self.H * self.W
-        self.next = 0
-        self.gen = torch.Generator(device="cpu").manual_seed(int(cfg.seed))
+        self.seed_key = int(_hash32(torch.tensor(int(cfg.seed) & 0xFFFFFFFF)))
         self.view_base = (torch.arange(self.V, device=device) * (self.H * self.W))[:, None]
 
-    @property
-    def remaining(self) -> int:
-        return self.V * (self.per_view - self.next)
+    def blocks(self, size: int) -> list[tuple[int, int]]:
+        """The per-view index range cut into blocks of `size` samples per view."""
+        return [(a, min(a + size, self.per_view)) for a in range(0, self.per_view, size)]
 
-    def take(self, max_rays: int) -> tuple[Tensor, Tensor, Tensor]:
-        """Up to max_rays (at least V) new camera rays: origins, unit dirs (N, 3) float32 world,
-        and each ray's flat pixel index v * H * W + row * W + col (N,) long."""
-        n = min(max(1, max_rays // self.V), self.per_view - self.next)
-        idx = torch.arange(self.next, self.next + n, device=self.device)
-        self.next += n
-        H, W, s, V = self.H, self.W, self.s, self.V
+    def take(self, a: int, b: int) -> tuple[Tensor, Tensor, Tensor]:
+        """Samples [a, b) of every view: origins, unit dirs (V * (b - a), 3) float32 world,
+        and each ray's flat pixel index v * H * W + row * W + col (V * (b - a),) long."""
+        H, W, s, V, n = self.H, self.W, self.s, self.V, b - a
+        idx = torch.arange(a, b, device=self.device)
         k, pix = idx // (H * W), idx % (H * W)
         si, sj = k // s, k % s
         if self.jitter:
-            jit = torch.rand((V, n, 2), generator=self.gen, dtype=torch.float32).to(self.device)
+            key = (torch.arange(V, device=self.device)[:, None] * self.per_view + idx[None]) & 0xFFFFFFFF
+            h1 = _hash32(key ^ self.seed_key)
+            h2 = _hash32(h1)
+            # 24 random bits: exactly representable in float32, so the jitter stays < 1.
+            jx = torch.bitwise_right_shift(h1, 8).to(torch.float32) * 2.0 ** -24
+            jy = torch.bitwise_right_shift(h2, 8).to(torch.float32) * 2.0 ** -24
         else:
-            jit = torch.full((V, n, 2), 0.5, dtype=torch.float32, device=self.device)
-        x = pix % W + (sj + jit[..., 0]) / s  # (V, n) continuous image coordinates
-        y = pix // W + (si + jit[..., 1]) / s
+            jx = jy = torch.full((V, n), 0.5, dtype=torch.float32, device=self.device)
+        x = pix % W + (sj + jx) / s  # (V, n) continuous image coordinates
+        y = pix // W + (si + jy) / s
         d = self.cams.directions_at(x, y).reshape(-1, 3)
         o = self.cams.origin[:, None, :].expand(V, n, 3).reshape(-1, 3)
         return o, d, (self.view_base + pix[None]).reshape(-1)
 
 
-def _transport(surf: _Surface, env: EnvironmentMap, samples: _CameraSamples, accum: Tensor,
-               cfg: RenderConfig, rest: Tensor, stats: RenderStats) -> None:
-    """Trace all camera samples through the glass, adding radiance into accum (V*H*W, 3).
+def _transport(surf: _Surface, env: EnvironmentMap, samples: _CameraSamples,
+               blocks: list[tuple[int, int]], accum: Tensor, cfg: RenderConfig, rest: Tensor,
+               stats: RenderStats, embree_threads: int) -> None:
+    """Trace the camera samples of `blocks` through the glass, adding radiance into accum
+    (V*H*W, 3).
 
     A wavefront: each step casts every live branch once. Deterministic branching: at every
     interface both the reflected (weight F) and the transmitted (1 - F) branch go on; branches
     under `prune_threshold` end (their weight x the mean environment radiance goes to the rest
     term); a branch that meets its (max_depth + 1)-th interface is dropped, as Mitsuba does.
-    Escaping branches read the environment in their direction. New camera samples are added
-    whenever the live set falls under `chunk_rays`, so the long, thin tails of deep paths
-    (total internal reflection traps) ride along with fresh work instead of costing a Python
-    step each per chunk.
+    Escaping branches read the environment in their direction. The next block of camera samples
+    joins whenever there is room, so the long, thin tails of deep paths (total internal
+    reflection traps) ride along with fresh work instead of costing Python steps of their own.
     """
     dev = accum.device
     empty3 = torch.zeros(0, 3, dtype=torch.float32, device=dev)
@@ -371,17 +386,18 @@ def _transport(surf: _Surface, env: EnvironmentMap, samples: _CameraSamples, acc
     p = torch.zeros(0, dtype=torch.long, device=dev)
     w = torch.zeros(0, dtype=torch.float32, device=dev)
     depth = torch.zeros(0, dtype=torch.int16, device=dev)
-    while len(o) or samples.remaining:
-        room = cfg.chunk_rays - len(o)
-        if samples.remaining and room >= cfg.chunk_rays // 4:
-            o_n, d_n, p_n = samples.take(room)
+    todo = list(reversed(blocks))
+    while len(o) or todo:
+        while todo and (len(o) == 0 or len(o) + samples.V * (todo[-1][1] - todo[-1][0]) <= cfg.chunk_rays):
+            o_n, d_n, p_n = samples.take(*todo.pop())
             stats.primary_rays += len(o_n)
             o, d, p = torch.cat([o, o_n]), torch.cat([d, d_n]), torch.cat([p, p_n])
             w = torch.cat([w, torch.ones(len(o_n), dtype=torch.float32, device=dev)])
             depth = torch.cat([depth, torch.zeros(len(o_n), dtype=torch.int16, device=dev)])
         # Camera rays are offset too: harmless (the camera is far from the object) and it keeps
         # one Embree call per step.
-        ih, ph, nh = surf.cast(o, d, offset=True)
+        ih, ph, nh = surf.cast(o, d, offset=True, threads=embree_threads)
+        stats.rays_cast += len(o)
         if len(ih) < len(o):  # escaped: read the environment
             esc = torch.ones(len(o), dtype=torch.bool, device=dev)
             esc[ih] = False
@@ -412,38 +428,78 @@ def _transport(surf: _Surface, env: EnvironmentMap, samples: _CameraSamples, acc
             o, d, p, w, depth = o[keep], d[keep], p[keep], w[keep], depth[keep]
 
 
+@contextmanager
+def _torch_threads(n: int):
+    """Run torch ops single-threaded inside (restored after): our parallelism is one Python
+    thread per worker, and OpenMP teams inside each of them would oversubscribe the cores; on
+    a loaded machine their spin-waiting barriers tripled the CPU time of a render."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
 def render_views(mesh: trimesh.Trimesh, envmap: EnvironmentMap, cameras: Cameras,
                  config: RenderConfig | None = None) -> RenderResult:
     """Render a smooth clear-glass `mesh` under the distant `envmap` from every view of `cameras`.
 
     mesh: closed, outward-oriented triangle mesh (world frame), shaded with its smooth vertex
     normals. envmap: equirectangular linear radiance. Returns `RenderResult` with image
-    (V, H, W, 3) float32 and the pixel-centre two-bounce maps (via `trace_two_bounce`'s code on
-    the same Embree scene). All rays of all views are traced together as one wavefront of at
-    most `config.chunk_rays` live branches; the only Python loop is over wavefront steps.
+    (V, H, W, 3) float32 and the pixel-centre two-bounce maps (`trace_two_bounce`'s code, on the
+    same Embree scene).
+
+    Rays of all views are traced together: the camera samples are cut into blocks that are
+    dealt round-robin to `config.threads` worker threads (torch and Embree release the GIL),
+    each running a wavefront of at most `chunk_rays` live branches; the only Python loop is over
+    wavefront steps. Each worker accumulates into its own image and the images are summed in
+    worker order, so a render is bit-for-bit reproducible for a given seed and thread count
+    (other thread counts differ by float rounding only: the samples themselves are fixed by the
+    seed). Torch runs single-threaded for the duration of the call (restored after).
     """
     cfg = config or RenderConfig()
     start = time.perf_counter()
     dev = torch.device(cfg.device)
-    surf = _Surface(mesh, dev, threads=cfg.threads)
+    workers = max(1, int(cfg.threads or os.cpu_count() or 1))
+    surf = _Surface(mesh, dev, threads=workers)
     stats = RenderStats()
+    with _torch_threads(1):
+        two = _two_bounce(surf, cameras, cfg.ior, cfg.ext_ior)
+        stats.seconds_two_bounce = time.perf_counter() - start
 
-    two = _two_bounce(surf, cameras, cfg.ior, cfg.ext_ior)
-    stats.seconds_two_bounce = time.perf_counter() - start
-    surf.rays_cast = 0
+        env = envmap.to(device=dev, dtype=torch.float32)
+        rest = mean_radiance(envmap).to(device=dev, dtype=torch.float32)
+        samples = _CameraSamples(cameras, cfg, dev)
+        V, H, W = samples.V, samples.H, samples.W
+        # Blocks of ~1/4 wavefront: small enough to top a wavefront up, big enough to amortize.
+        blocks = samples.blocks(max(1, cfg.chunk_rays // (4 * V)))
+        workers = min(workers, len(blocks))
 
-    env = envmap.to(device=dev, dtype=torch.float32)
-    rest = mean_radiance(envmap).to(device=dev, dtype=torch.float32)
-    samples = _CameraSamples(cameras, cfg, dev)
-    V, H, W = samples.V, samples.H, samples.W
-    accum = torch.zeros(V * H * W, 3, dtype=torch.float32, device=dev)
-    _transport(surf, env, samples, accum, cfg, rest, stats)
+        def work(i: int) -> tuple[Tensor, RenderStats]:
+            acc = torch.zeros(V * H * W, 3, dtype=torch.float32, device=dev)
+            st = RenderStats()
+            _transport(surf, env, samples, blocks[i::workers], acc, cfg, rest, st, embree_threads=1)
+            return acc, st
+
+        if workers == 1:
+            parts = [work(0)]
+        else:
+            with ThreadPoolExecutor(workers) as pool:
+                parts = list(pool.map(work, range(workers)))
+        accum = parts[0][0]
+        for acc, _ in parts[1:]:
+            accum += acc
+        for _, st in parts:
+            stats.primary_rays += st.primary_rays
+            stats.rays_cast += st.rays_cast
+            stats.pruned_energy += st.pruned_energy
+            stats.truncated_energy += st.truncated_energy
 
     image = (accum / cfg.samples_per_pixel).view(V, H, W, 3)
     total = max(stats.primary_rays, 1)
     stats.pruned_energy /= total
     stats.truncated_energy /= total
-    stats.rays_cast = surf.rays_cast
     stats.seconds = time.perf_counter() - start
     return RenderResult(image=image, two_bounce=two, stats=stats)
 
