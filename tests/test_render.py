@@ -321,3 +321,7 @@ def test_config_validation():
         RenderConfig(prune_threshold=1.5)
     assert RenderConfig(samples_per_axis=3).samples_per_pixel == 9
     assert RenderConfig().max_depth >= 8
+    inverted = _sphere()
+    inverted.invert()
+    with pytest.raises(ValueError, match="inward"):
+        trace_two_bounce(inverted, _views(8, 6))

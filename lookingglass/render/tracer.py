@@ -194,6 +194,9 @@ class _Surface:
 
     def __init__(self, mesh: trimesh.Trimesh, device: str | torch.device = "cpu",
                  caster: RayCaster | None = None, threads: int | None = None):
+        if mesh.is_watertight and mesh.volume < 0:
+            # Inward normals would swap glass and air everywhere: refuse rather than render nonsense.
+            raise ValueError("mesh is oriented inward (negative volume); call mesh.invert() first")
         self.caster = caster if caster is not None else RayCaster(mesh)
         self.device = torch.device(device)
         faces = torch.from_numpy(self.caster.faces)
