@@ -468,7 +468,7 @@ def render_views(mesh: trimesh.Trimesh, envmap: EnvironmentMap, cameras: Cameras
     wavefront steps. Each worker accumulates into its own image and the images are summed in
     worker order, so a render is bit-for-bit reproducible for a given seed and thread count
     (other thread counts differ by float rounding only: the samples themselves are fixed by the
-    seed). Torch runs single-threaded for the duration of the call (restored after).
+    seed). Torch runs single-threaded during the image pass (restored after).
     """
     cfg = config or RenderConfig()
     start = time.perf_counter()
@@ -476,10 +476,9 @@ def render_views(mesh: trimesh.Trimesh, envmap: EnvironmentMap, cameras: Cameras
     workers = max(1, int(cfg.threads or os.cpu_count() or 1))
     surf = _Surface(mesh, dev, threads=workers)
     stats = RenderStats()
+    two = _two_bounce(surf, cameras, cfg.ior, cfg.ext_ior)  # one thread of big torch ops: keep torch's pool
+    stats.seconds_two_bounce = time.perf_counter() - start
     with _torch_threads(1):
-        two = _two_bounce(surf, cameras, cfg.ior, cfg.ext_ior)
-        stats.seconds_two_bounce = time.perf_counter() - start
-
         env = envmap.to(device=dev, dtype=torch.float32)
         rest = mean_radiance(envmap).to(device=dev, dtype=torch.float32)
         samples = _CameraSamples(cameras, cfg, dev)
