@@ -41,7 +41,7 @@ from lookingglass.capture.images import read_envmap  # noqa: E402
 from lookingglass.physics.camera import Cameras  # noqa: E402
 from lookingglass.physics.environment import EnvironmentMap  # noqa: E402
 from lookingglass.render.raycast import RayCaster  # noqa: E402
-from lookingglass.render.shapes import radial_blob  # noqa: E402
+from lookingglass.render.testshapes import radial_blob  # noqa: E402
 from lookingglass.render.tracer import (RenderConfig, _dielectric, _Surface, render_views,  # noqa: E402
                                         trace_two_bounce)
 

@@ -18,7 +18,7 @@ from lookingglass.capture.images import read_envmap
 from lookingglass.physics.camera import Cameras
 from lookingglass.physics.environment import EnvironmentMap
 from lookingglass.render.raycast import RayCaster, object_masks
-from lookingglass.render.shapes import radial_blob
+from lookingglass.render.testshapes import radial_blob
 from lookingglass.render.tracer import RenderConfig, render_views, trace_two_bounce
 
 IOR, EXT_IOR = 1.4723, 1.0003

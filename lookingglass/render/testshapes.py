@@ -1,6 +1,6 @@
 """Small procedural test shapes for the renderer's validation and benchmarks.
 
-Not the dataset's shape generator: these only need to be closed, single-surface (no inner
+Not the dataset's shape generator (lookingglass.data.shapes): these only need to be closed, single-surface (no inner
 faces), outward-oriented and, for `radial_blob`, non-convex, so light paths get interesting.
 """
 
