@@ -1,7 +1,8 @@
 """Small procedural test shapes for the renderer's validation and benchmarks.
 
-Not the dataset's shape generator (lookingglass.data.shapes): these only need to be closed, single-surface (no inner
-faces), outward-oriented and, for `radial_blob`, non-convex, so light paths get interesting.
+Not the dataset's shape generator (lookingglass.data.shapes): these only need to be closed,
+single-surface (no inner faces), outward-oriented and, for `radial_blob`, non-convex, so that
+light paths get interesting.
 """
 
 from __future__ import annotations
