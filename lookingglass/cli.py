@@ -1,0 +1,92 @@
+"""The `lookingglass` command line. Each command is a thin wrapper over a library function."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+
+from .errors import LookingGlassError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  help="Reconstruct transparent objects from a few photos under a known environment map.")
+
+
+@app.command()
+def reconstruct(
+    scene_dir: Path = typer.Argument(..., help="Scene folder with scene.json, images, masks and envmap."),
+    out: Path = typer.Option(..., "--out", help="Output folder (must be empty unless --force)."),
+    preset: str = typer.Option("cpu", help="Configuration preset: cpu or paper."),
+    hull_resolution: Optional[int] = typer.Option(None, help="Voxels along the longest side of the hull box."),
+    device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
+    force: bool = typer.Option(False, "--force", help="Overwrite a non-empty output folder."),
+    quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
+) -> None:
+    """Reconstruct the object's surface; writes mesh.ply, visual_hull.ply and report.json."""
+    from .config import preset as make_preset
+    from .pipeline import reconstruct as run
+    from .progress import Reporter
+
+    config = make_preset(preset)
+    config.device = device
+    if hull_resolution is not None:
+        if not 16 <= hull_resolution <= 1024:
+            raise LookingGlassError(f"--hull-resolution must be in [16, 1024], got {hull_resolution}")
+        config.hull.resolution = hull_resolution
+    reporter = Reporter(quiet=quiet)
+    report = run(scene_dir, out, config, force=force, reporter=reporter)
+    reporter.info(f"wrote {out / 'mesh.ply'} ({report['total_seconds']:.1f} s)")
+
+
+@app.command()
+def evaluate(
+    pred_mesh: Path = typer.Argument(..., help="Reconstructed mesh."),
+    gt_mesh: Path = typer.Argument(..., help="Ground-truth mesh."),
+    samples: int = typer.Option(20000, help="Points sampled on each surface."),
+    seed: int = typer.Option(0, help="Sampling seed."),
+) -> None:
+    """Print CD (x1e4), Metro (x1e3), CDN-mean and CDN-med (degrees) as JSON, on the unit-sphere scale of GT."""
+    from .metrics import evaluate_mesh_files
+
+    print(json.dumps(evaluate_mesh_files(pred_mesh, gt_mesh, samples=samples, seed=seed), indent=2))
+
+
+@app.command("import-paper")
+def import_paper(
+    cams: Path = typer.Option(..., "--cams", help="The paper's camera file (cam*.txt)."),
+    images: Path = typer.Option(..., "--images", help="Folder of photos (may hold more than the masks)."),
+    masks: Path = typer.Option(..., "--masks", help="Folder of masks, matched to photos by file stem."),
+    envmap: Path = typer.Option(..., "--envmap", help="Environment map (.hdr, .exr or 8-bit)."),
+    out: Path = typer.Option(..., "--out", help="Scene folder to write."),
+    envmap_scale: float = typer.Option(1.0, help="Factor bringing the envmap into the images' units."),
+    fov_x: float = typer.Option(63.349, "--fov-x", help="Horizontal field of view in degrees."),
+    size: Optional[tuple[int, int]] = typer.Option(None, "--size", help="Resize images and masks to W H."),
+    force: bool = typer.Option(False, "--force", help="Overwrite a non-empty output folder."),
+) -> None:
+    """Convert the paper's real-capture layout into a scene folder."""
+    from .capture.paper_import import import_paper as run
+
+    path = run(cams=cams, images=images, masks=masks, envmap=envmap, out=out, envmap_scale=envmap_scale,
+               fov_x_deg=fov_x, size=size, force=force)
+    Console(stderr=True).print(f"wrote {path}")
+
+
+def main() -> None:
+    """Entry point: user errors become one clear line on stderr and exit status 2."""
+    try:
+        app()
+    except LookingGlassError as exc:
+        Console(stderr=True, highlight=False).print(f"[red]error:[/red] {escape(str(exc))}")
+        sys.exit(2)
+    except KeyboardInterrupt:
+        Console(stderr=True).print("interrupted")
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,108 @@
+"""`reconstruct`: run every stage that exists on a scene folder and write the results.
+
+Stages today: visual hull. Outputs (all in the capture's own frame, written atomically):
+  OUT/visual_hull.ply  the carved and smoothed hull
+  OUT/mesh.ply         the best surface the pipeline produced (today: the hull)
+  OUT/report.json      stages run, per-stage seconds and peak memory, sizes, versions, config
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+import warnings
+from pathlib import Path
+
+import trimesh
+
+from . import __version__
+from .capture.scene import load_capture
+from .config import PipelineConfig, config_to_dict, resolve_device
+from .errors import LookingGlassError
+from .fileio import write_atomic, write_json
+from .hull import carve_visual_hull
+from .progress import Reporter, peak_memory_mb
+
+STAGES = ("visual_hull",)
+
+
+def versions() -> dict:
+    """Versions of the package and the libraries that shape its numbers."""
+    import numpy
+    import pymeshlab
+    import skimage
+    import torch
+
+    return {"lookingglass": __version__, "python": platform.python_version(), "torch": torch.__version__,
+            "numpy": numpy.__version__, "trimesh": trimesh.__version__, "scikit-image": skimage.__version__,
+            "pymeshlab": getattr(pymeshlab, "__version__", "unknown")}
+
+
+def prepare_output_dir(out_dir: Path, force: bool) -> None:
+    """Create OUT_DIR; refuse a non-empty one unless `force`."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise LookingGlassError("output path exists and is not a folder", out_dir)
+    if out_dir.exists() and any(out_dir.iterdir()) and not force:
+        raise LookingGlassError("output folder is not empty (use --force to overwrite)", out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+
+def write_mesh(path: Path, mesh: trimesh.Trimesh) -> Path:
+    """Binary PLY, atomically."""
+    return write_atomic(path, lambda tmp: mesh.export(tmp, file_type="ply"))
+
+
+def mesh_summary(mesh: trimesh.Trimesh) -> dict:
+    return {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)),
+            "watertight": bool(mesh.is_watertight), "volume": float(mesh.volume) if mesh.is_watertight else None,
+            "bounds": mesh.bounds.tolist()}
+
+
+def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = None, force: bool = False,
+                reporter: Reporter | None = None) -> dict:
+    """Reconstruct the object in the scene folder `scene_dir`; returns the report dict."""
+    config = config or PipelineConfig()
+    reporter = reporter or Reporter(quiet=True)
+    scene_dir, out_dir = Path(scene_dir), Path(out_dir)
+    start = time.perf_counter()
+    device = resolve_device(config.device)
+    if scene_dir.resolve() == out_dir.resolve():
+        raise LookingGlassError("output folder must differ from the scene folder", out_dir)
+    prepare_output_dir(out_dir, force)
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with reporter.stage("load", f"load {scene_dir}") as rec:
+            capture = load_capture(scene_dir)
+            rec.update(views=capture.num_views, image_size=[capture.width, capture.height])
+
+        with reporter.stage("visual_hull", "visual hull") as rec:
+            hull = carve_visual_hull(capture.masks, capture.cameras, config.hull)
+            write_mesh(out_dir / "visual_hull.ply", hull.mesh)
+            rec.update(mesh=mesh_summary(hull.mesh), voxel_size=float(hull.voxel_size),
+                       timings={k: round(float(v), 3) for k, v in hull.timings.items()})
+
+        best, best_stage = hull.mesh, "visual_hull"
+        write_mesh(out_dir / "mesh.ply", best)
+    messages = [str(w.message) for w in caught]
+    for message in messages:
+        reporter.warn(message)
+
+    report = {
+        "scene": str(scene_dir.resolve()),
+        "num_views": capture.num_views,
+        "image_size": [capture.width, capture.height],
+        "ior": capture.ior,
+        "device": device,
+        "stages_run": [s["name"] for s in reporter.stages if s["name"] in STAGES],
+        "stages": reporter.stages,
+        "mesh_from": best_stage,
+        "normalization": {"center": [float(c) for c in hull.center], "scale": float(hull.scale)},
+        "warnings": messages,
+        "total_seconds": round(time.perf_counter() - start, 3),
+        "peak_memory_mb": round(peak_memory_mb(), 1),
+        "versions": versions(),
+        "config": config_to_dict(config),
+    }
+    write_json(out_dir / "report.json", report)
+    return report

@@ -1,0 +1,60 @@
+"""Progress on the terminal (rich, to stderr) and per-stage timing, silenced by --quiet."""
+
+from __future__ import annotations
+
+import contextlib
+import resource
+import sys
+import time
+from typing import Iterable, Iterator, TypeVar
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+T = TypeVar("T")
+
+
+def peak_memory_mb() -> float:
+    """Peak resident memory of this process so far, in MiB (Linux reports ru_maxrss in KiB)."""
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / 1024.0 if sys.platform != "darwin" else rss / 2**20
+
+
+class Reporter:
+    """Times named stages and shows progress; `quiet=True` prints nothing (for scripts)."""
+
+    def __init__(self, quiet: bool = False):
+        self.quiet = quiet
+        self.console = Console(stderr=True, quiet=quiet)
+        self.stages: list[dict] = []
+
+    def info(self, message: str) -> None:
+        self.console.print(message)
+
+    def warn(self, message: str) -> None:
+        self.console.print(f"[yellow]warning:[/yellow] {message}")
+
+    @contextlib.contextmanager
+    def stage(self, name: str, description: str | None = None) -> Iterator[dict]:
+        """Time a pipeline stage. The yielded dict collects the stage's figures for the report."""
+        record: dict = {"name": name}
+        start = time.perf_counter()
+        with self.console.status(f"{description or name} ..."):
+            yield record
+        record["seconds"] = round(time.perf_counter() - start, 3)
+        record["peak_memory_mb"] = round(peak_memory_mb(), 1)
+        self.stages.append(record)
+        self.console.print(f"[green]✓[/green] {description or name} [dim]({record['seconds']:.2f} s)[/dim]")
+
+    def track(self, items: Iterable[T], total: int | None = None, description: str = "") -> Iterator[T]:
+        """Iterate with a progress bar (with counts and ETA)."""
+        if self.quiet:
+            yield from items
+            return
+        columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                   TimeElapsedColumn(), TimeRemainingColumn())
+        with Progress(*columns, console=self.console, transient=False) as bar:
+            task = bar.add_task(description, total=total if total is not None else len(items))  # type: ignore[arg-type]
+            for item in items:
+                yield item
+                bar.advance(task)
