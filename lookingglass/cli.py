@@ -151,6 +151,13 @@ def demo(
     mesh = load_mesh(out / "result" / "mesh.ply")
     scores = shape_metrics(mesh, shape)
     write_json(out / "scores.json", {"mesh_from": report["mesh_from"], **scores})
+    from .capture.scene import load_capture
+    from .viz import overview
+
+    capture = load_capture(out / "scene")
+    overview(out / "overview.png", capture.images[0], capture.masks[0], capture.cameras.select(0),
+             {"ground truth": shape, "reconstruction": mesh})
+    reporter.info(f"overview {out / 'overview.png'} (photo | mask | ground-truth normals | reconstructed normals)")
     reporter.info(f"mesh {out / 'result' / 'mesh.ply'} ({len(mesh.faces)} faces) vs ground truth: "
                   f"CD {scores['cd']:.2f} (x1e4), Metro {scores['metro']:.2f} (x1e3), "
                   f"CDN-mean {scores['cdn_mean']:.2f} deg, CDN-med {scores['cdn_med']:.2f} deg")
