@@ -22,45 +22,22 @@ Method.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
-import os
 import time
 import warnings
 from dataclasses import dataclass
-from typing import Callable, Iterator
+from typing import Callable
 
 import numpy as np
 import torch
 import trimesh
 
 from .errors import LookingGlassError
+from .threads import torch_threads
 from .physics.camera import Cameras
 
 ProgressFn = Callable[[str, float], None]
-
-
-@contextlib.contextmanager
-def _torch_threads(n: int) -> Iterator[None]:
-    """Run the block with n torch intra-op threads, then restore the previous setting.
-
-    n > 0: exactly n; n = 0: half the machine's cores (at least 1, at most torch's current
-    setting); n < 0: leave torch's setting alone. Why half: on the 2-core machine with other jobs
-    running, 2 threads made the carve 5x slower than 1 (every op waits at a barrier for a thread
-    the OS has descheduled), while on an idle machine 2 threads gained only ~20%.
-    """
-    if n == 0:
-        n = max(1, min(torch.get_num_threads(), (os.cpu_count() or 2) // 2))
-    if n < 0 or n == torch.get_num_threads():
-        yield
-        return
-    old = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old)
 
 
 @dataclass
@@ -86,7 +63,7 @@ class HullConfig:
         and cameras (consistent synthetic captures give >= 0.99).
     chunk_voxels: voxels carved per batch; bounds the memory to ~ 40 bytes x chunk_voxels.
     num_threads: torch intra-op threads while carving: > 0 exactly that many, 0 = half the cores
-        (see `_torch_threads`), < 0 = torch's current setting.
+        (see `torch_threads`), < 0 = torch's current setting.
     device: torch device for the carving ("cpu", "cuda", ...).
     """
 
@@ -579,7 +556,7 @@ def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig()
             "object is cut off there, and the hull is clipped to the image (outside counts as "
             "background)", stacklevel=2)
 
-    with _torch_threads(config.num_threads), torch.inference_mode():
+    with torch_threads(config.num_threads), torch.inference_mode():
         fields = silhouette_fields(masks)
         carver = _Carver(fields, cameras, config.device, config.chunk_voxels)
         step("masks", 0.05)

@@ -38,7 +38,6 @@ import math
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -49,6 +48,7 @@ from torch import Tensor
 from ..physics.camera import Cameras
 from ..physics.environment import EnvironmentMap
 from ..physics.optics import IOR_AIR, IOR_GLASS, interface
+from ..threads import torch_threads
 from .raycast import RayCaster
 
 
@@ -440,19 +440,6 @@ def _transport(surf: _Surface, env: EnvironmentMap, samples: _CameraSamples,
             o, d, p, w, depth = o[keep], d[keep], p[keep], w[keep], depth[keep]
 
 
-@contextmanager
-def _torch_threads(n: int):
-    """Run torch ops single-threaded inside (restored after): our parallelism is one Python
-    thread per worker, and OpenMP teams inside each of them would oversubscribe the cores; on
-    a loaded machine their spin-waiting barriers tripled the CPU time of a render."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old)
-
-
 def render_views(mesh: trimesh.Trimesh, envmap: EnvironmentMap, cameras: Cameras,
                  config: RenderConfig | None = None) -> RenderResult:
     """Render a smooth clear-glass `mesh` under the distant `envmap` from every view of `cameras`.
@@ -478,7 +465,9 @@ def render_views(mesh: trimesh.Trimesh, envmap: EnvironmentMap, cameras: Cameras
     stats = RenderStats()
     two = _two_bounce(surf, cameras, cfg.ior, cfg.ext_ior)  # one thread of big torch ops: keep torch's pool
     stats.seconds_two_bounce = time.perf_counter() - start
-    with _torch_threads(1):
+    # Torch single-threaded: our parallelism is one Python thread per worker, and OpenMP teams
+    # inside each would oversubscribe the cores (their spin-waits tripled a render's CPU time).
+    with torch_threads(1):
         env = envmap.to(device=dev, dtype=torch.float32)
         rest = mean_radiance(envmap).to(device=dev, dtype=torch.float32)
         samples = _CameraSamples(cameras, cfg, dev)
