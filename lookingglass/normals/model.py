@@ -1,0 +1,190 @@
+"""NNet (encoder-decoder for N1, N2), FNet and the cost volume (paper Sec. 3.1, supplement).
+
+One implementation; the paper's ablations are switches of `NormalNetConfig`:
+  basic:  use_error_map=False, use_cost_volume=False  (I, I*M, M, Ñ1, Ñ2: 13 channels)
+  wr:     use_error_map=True,  use_cost_volume=False  (+ Ĩer, M̃tr: 15 channels)
+  wr+cv:  use_error_map=True,  use_cost_volume=True   (+ FNet features pooled over K x K pairs)
+All normal maps are camera-frame (x right, y up, z towards the camera), tensors (B, C, H, W).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor, nn
+
+from ..physics.camera import Cameras
+from ..physics.environment import EnvironmentMap
+from .render_layer import error_map, render_layer
+
+# The supplement's cost-volume angles: theta = 0, t, t, t and phi = 0, 0, 120, 240 degrees, with
+# t chosen from the visual hull's normal error for each view count.
+COST_VOLUME_THETA_DEG = {5: 25.0, 10: 15.0, 20: 10.0}
+
+
+@dataclass
+class NormalNetConfig:
+    """Widths of NNet/FNet and the ablation switches. `paper` sizes are the paper's."""
+
+    width: int = 256
+    height: int = 192
+    enc_channels: tuple[int, int, int] = (64, 256, 512)
+    fnet_channels: int = 64
+    groups: int = 16
+    use_error_map: bool = True
+    use_cost_volume: bool = True
+    num_views: int = 10
+    cost_volume_k: int = 4
+    cost_volume_theta_deg: float | None = None  # None: the supplement's value for num_views
+
+    @property
+    def in_channels(self) -> int:
+        return 15 if self.use_error_map else 13
+
+    @property
+    def theta_deg(self) -> float:
+        if self.cost_volume_theta_deg is not None:
+            return self.cost_volume_theta_deg
+        nearest = min(COST_VOLUME_THETA_DEG, key=lambda v: abs(v - self.num_views))
+        return COST_VOLUME_THETA_DEG[nearest]
+
+
+def paper_config(**kw) -> NormalNetConfig:
+    return NormalNetConfig(**kw)
+
+
+def cpu_config(**kw) -> NormalNetConfig:
+    """Narrower and at half the paper's resolution: trains in about an hour on 2 CPU cores."""
+    base = dict(width=128, height=96, enc_channels=(32, 64, 128), fnet_channels=32, groups=8)
+    base.update(kw)
+    return NormalNetConfig(**base)
+
+
+PRESETS = {"paper": paper_config, "cpu": cpu_config}
+
+
+def _conv(cin: int, cout: int, k: int, stride: int, groups: int) -> nn.Sequential:
+    # 3x3 stride 1 and 4x4 stride 2 both take padding 1: same size, or exactly half.
+    conv = nn.Conv2d(cin, cout, k, stride, padding=1, bias=False)
+    return nn.Sequential(conv, nn.GroupNorm(min(groups, cout), cout), nn.ReLU(inplace=True))
+
+
+class FNet(nn.Module):
+    """Features of one (Ñ1_k, Ñ2_k') pair: 8 channels (two normals, error, TIR mask) -> /2 resolution."""
+
+    def __init__(self, cfg: NormalNetConfig):
+        super().__init__()
+        c = cfg.fnet_channels
+        self.net = nn.Sequential(_conv(8, c, 4, 2, cfg.groups), _conv(c, c, 3, 1, cfg.groups))
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.net(x)
+
+
+class NormalNet(nn.Module):
+    """NNet with optional cost volume. forward(inputs, cost_volume=None) -> (n1, n2) unit normals."""
+
+    def __init__(self, cfg: NormalNetConfig):
+        super().__init__()
+        self.cfg = cfg
+        c1, c2, c3 = cfg.enc_channels
+        g = cfg.groups
+        self.enc1 = nn.Sequential(_conv(cfg.in_channels, c1, 4, 2, g), _conv(c1, c1, 3, 1, g))
+        extra = cfg.fnet_channels if cfg.use_cost_volume else 0
+        self.enc2 = nn.Sequential(_conv(c1 + extra, c2, 4, 2, g), _conv(c2, c2, 3, 1, g),
+                                  _conv(c2, c3, 4, 2, g), _conv(c3, c3, 3, 1, g))
+        up = lambda: nn.Upsample(scale_factor=2, mode="bilinear", align_corners=False)  # noqa: E731
+        self.decoder = nn.Sequential(
+            _conv(c3, c3, 3, 1, g), _conv(c3, c2, 3, 1, g), up(),
+            _conv(c2, c2, 3, 1, g), _conv(c2, c1 * 2, 3, 1, g), up(),
+            _conv(c1 * 2, c1 * 2, 3, 1, g), _conv(c1 * 2, c1, 3, 1, g), up(),
+            nn.Conv2d(c1, 6, 3, 1, 1))
+        if cfg.use_cost_volume:
+            self.fnet = FNet(cfg)
+            k2 = cfg.cost_volume_k ** 2
+            self.pool_logits = nn.Parameter(torch.zeros(k2))  # softmax: positive weights summing to 1
+
+    def pooling_weights(self) -> Tensor:
+        return torch.softmax(self.pool_logits, dim=0)
+
+    def encode(self, inputs: Tensor, cost_volume: Tensor | None = None) -> Tensor:
+        """inputs (B, in_channels, H, W); cost_volume (B, K*K, 8, H, W) or None -> latent (B, c3, H/8, W/8)."""
+        x = self.enc1(inputs)
+        if self.cfg.use_cost_volume:
+            if cost_volume is None:
+                raise ValueError("this network was built with a cost volume; pass one")
+            B, K2 = cost_volume.shape[:2]
+            feats = self.fnet(cost_volume.flatten(0, 1)).unflatten(0, (B, K2))
+            x = torch.cat([x, (feats * self.pooling_weights().view(1, K2, 1, 1, 1)).sum(1)], dim=1)
+        return self.enc2(x)
+
+    def decode(self, latent: Tensor) -> tuple[Tensor, Tensor]:
+        out = torch.tanh(self.decoder(latent))
+        return (torch.nn.functional.normalize(out[:, :3], dim=1, eps=1e-6),
+                torch.nn.functional.normalize(out[:, 3:], dim=1, eps=1e-6))
+
+    def forward(self, inputs: Tensor, cost_volume: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        return self.decode(self.encode(inputs, cost_volume))
+
+
+# ---- inputs -------------------------------------------------------------------------------------
+def to_channels(x: Tensor) -> Tensor:
+    """(V, H, W, C) -> (V, C, H, W)."""
+    return x.permute(0, 3, 1, 2)
+
+
+def network_inputs(image: Tensor, mask: Tensor, vh_n1: Tensor, vh_n2: Tensor, vh_error: Tensor | None,
+                   vh_tir: Tensor | None) -> Tensor:
+    """Stack the paper's input channels. image (V,H,W,3) normalized; mask (V,H,W) bool; vh_n1/2
+    (V,H,W,3) camera frame; vh_error (V,H,W,3) Ĩer or None (basic); vh_tir (V,H,W) bool.
+    Returns (V, 13 or 15, H, W)."""
+    m = mask.unsqueeze(-1).to(image.dtype)
+    parts = [image, image * m, m, vh_n1 * m, vh_n2 * m]
+    if vh_error is not None:
+        parts += [vh_error.mean(-1, keepdim=True), vh_tir.unsqueeze(-1).to(image.dtype) * m]
+    return to_channels(torch.cat(parts, dim=-1))
+
+
+def sample_cone(normals: Tensor, theta_deg: float, k: int = 4) -> Tensor:
+    """The cost volume's K normals around each normal (..., 3): theta = 0, t, t, ... and phi evenly
+    spread from 0 in the local frame Z = Ñ, Y = normalize(U - (U.Ñ)Ñ) with U = image up (0, 1, 0)
+    in camera coordinates, X = Y x Z. Returns (K, ..., 3)."""
+    z = torch.nn.functional.normalize(normals, dim=-1)
+    up = torch.zeros_like(z)
+    up[..., 1] = 1.0
+    y = up - (up * z).sum(-1, keepdim=True) * z
+    # Where Ñ is (anti)parallel to the image up vector, fall back to the image's right vector.
+    right = torch.zeros_like(z)
+    right[..., 0] = 1.0
+    degenerate = y.norm(dim=-1, keepdim=True) < 1e-6
+    y = torch.where(degenerate, right - (right * z).sum(-1, keepdim=True) * z, y)
+    y = torch.nn.functional.normalize(y, dim=-1)
+    x = torch.linalg.cross(y, z, dim=-1)
+    t = math.radians(theta_deg)
+    thetas = [0.0] + [t] * (k - 1)
+    phis = [0.0] + [2 * math.pi * i / (k - 1) for i in range(k - 1)]
+    out = [x * math.cos(p) * math.sin(th) + y * math.sin(p) * math.sin(th) + z * math.cos(th)
+           for th, p in zip(thetas, phis)]
+    return torch.stack(out)
+
+
+def build_cost_volume(envmap: EnvironmentMap, image: Tensor, mask: Tensor, vh_n1: Tensor, vh_n2: Tensor,
+                      cameras: Cameras, theta_deg: float, k: int = 4, ior: float = 1.4723,
+                      ext_ior: float = 1.0003) -> Tensor:
+    """For every pair (Ñ1_k, Ñ2_k') render an error map and TIR mask with the rendering layer.
+
+    image (V,H,W,3) in the environment's units; mask (V,H,W); vh_n1/2 (V,H,W,3) camera frame;
+    cameras at the same resolution. Returns (V, K*K, 8, H, W): Ñ1_k, Ñ2_k', mean |error|, M̃tr."""
+    n1s, n2s = sample_cone(vh_n1, theta_deg, k), sample_cone(vh_n2, theta_deg, k)
+    dirs = cameras.pixel_rays()[1].to(image)
+    m = mask.unsqueeze(-1).to(image.dtype)
+    pairs = []
+    for a in range(k):
+        for b in range(k):
+            out = render_layer(envmap, n1s[a], n2s[b], cameras, ior, ext_ior, view_dirs=dirs)
+            err = error_map(image, out.image, mask).mean(-1, keepdim=True)
+            tir = out.tir.unsqueeze(-1).to(image.dtype) * m
+            pairs.append(torch.cat([n1s[a] * m, n2s[b] * m, err, tir], dim=-1))
+    return torch.stack(pairs, dim=1).permute(0, 1, 4, 2, 3)

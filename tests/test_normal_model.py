@@ -1,0 +1,74 @@
+"""NNet / FNet / cost volume: shapes, the paper's switches, the cone sampling geometry."""
+
+import math
+
+import pytest
+import torch
+
+from lookingglass.normals.model import (NormalNet, build_cost_volume, cpu_config, network_inputs, paper_config,
+                                        sample_cone)
+from lookingglass.physics.camera import Cameras
+from lookingglass.physics.environment import EnvironmentMap
+
+
+def test_sample_cone_angles_and_frame():
+    g = torch.Generator().manual_seed(0)
+    n = torch.nn.functional.normalize(torch.randn(500, 3, generator=g, dtype=torch.float64), dim=-1)
+    cone = sample_cone(n, 15.0, 4)
+    assert cone.shape == (4, 500, 3)
+    torch.testing.assert_close(cone.norm(dim=-1), torch.ones(4, 500, dtype=torch.float64))
+    angles = torch.rad2deg(torch.acos((cone * n).sum(-1).clamp(-1, 1)))
+    torch.testing.assert_close(angles[0], torch.zeros(500, dtype=torch.float64), atol=1e-5, rtol=0)
+    torch.testing.assert_close(angles[1:], torch.full((3, 500), 15.0, dtype=torch.float64))
+    # phi = 0, 120, 240 degrees: the three tilted samples are 120 degrees apart around Ñ.
+    tilt = cone[1:] - (cone[1:] * n).sum(-1, keepdim=True) * n
+    tilt = torch.nn.functional.normalize(tilt, dim=-1)
+    cos01 = (tilt[0] * tilt[1]).sum(-1)
+    torch.testing.assert_close(cos01, torch.full((500,), math.cos(math.radians(120)), dtype=torch.float64))
+    # phi = 0 tilts towards X = Y x Z, which is perpendicular to the image up vector.
+    assert (tilt[0][:, 1].abs() < 1e-9).all()
+
+
+@pytest.mark.parametrize("error_map, cost_volume, channels", [(False, False, 13), (True, False, 15), (True, True, 15)])
+def test_switches_and_shapes(error_map, cost_volume, channels):
+    cfg = cpu_config(width=64, height=48, use_error_map=error_map, use_cost_volume=cost_volume)
+    net = NormalNet(cfg)
+    assert cfg.in_channels == channels
+    x = torch.randn(2, channels, 48, 64)
+    cv = torch.randn(2, 16, 8, 48, 64) if cost_volume else None
+    n1, n2 = net(x, cv)
+    assert n1.shape == n2.shape == (2, 3, 48, 64)
+    torch.testing.assert_close(n1.norm(dim=1), torch.ones(2, 48, 64), atol=1e-5, rtol=0)
+    (n1.sum() + n2.sum()).backward()
+    if cost_volume:
+        w = net.pooling_weights()
+        assert (w > 0).all() and w.sum().item() == pytest.approx(1.0)
+        assert net.pool_logits.grad is not None
+
+
+def test_paper_widths():
+    net = NormalNet(paper_config())
+    convs = [m for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert (convs[0].in_channels, convs[0].out_channels, convs[0].kernel_size, convs[0].stride) == (15, 64, (4, 4), (2, 2))
+    fnet = [m for m in net.fnet.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert (fnet[0].in_channels, fnet[0].out_channels) == (8, 64)
+    enc2_first = [m for m in net.enc2.modules() if isinstance(m, torch.nn.Conv2d)][0]
+    assert (enc2_first.in_channels, enc2_first.out_channels) == (128, 256)  # 64 + 64 from the cost volume
+    assert net.decoder[-1].out_channels == 6
+
+
+def test_cost_volume_zero_error_at_truth():
+    """At the pair (θ=0, θ=0), i.e. the hull normals themselves, the error equals the layer's own."""
+    cams = Cameras.look_at([[0, 0, 3.0]], [[0, 0, 0]], [[0, 1, 0]], 40.0, 16, 12)
+    env = EnvironmentMap(torch.rand(8, 16, 3))
+    n = torch.nn.functional.normalize(torch.randn(1, 12, 16, 3) * 0.2 + torch.tensor([0, 0, 1.0]), dim=-1)
+    from lookingglass.normals.render_layer import render_layer
+
+    image = render_layer(env, n, -n, cams).image
+    mask = torch.ones(1, 12, 16, dtype=torch.bool)
+    cv = build_cost_volume(env, image, mask, n, -n, cams, 15.0)
+    assert cv.shape == (1, 16, 8, 12, 16)
+    assert cv[0, 0, 6].abs().max() < 1e-6  # pair (0, 0): rendered from the same normals
+    assert cv[0, 5, 6].abs().mean() > 1e-3  # a tilted pair renders differently
+    x = network_inputs(image, mask, n, -n, cv[:, 0, 6:7].permute(0, 2, 3, 1).expand(-1, -1, -1, 3), mask)
+    assert x.shape == (1, 15, 12, 16)
