@@ -1,0 +1,65 @@
+"""Latent optimization (the paper's post-processing): freeze NNet, optimize the encoder's output
+so the rendering layer reproduces the photos better; the decoder keeps normals plausible."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..physics.camera import Cameras
+from ..physics.environment import EnvironmentMap
+from .model import NormalNet
+from .render_layer import render_layer
+
+
+@dataclass
+class LatentOptConfig:
+    """iterations_n2: steps on N2 with N1 held by an identity loss of weight `identity_weight`;
+    iterations_both: steps on both. The paper uses 500 + more on a GPU; the CPU defaults are the
+    measured knee of the render-error curve (docs/results.md)."""
+
+    iterations_n2: int = 50
+    iterations_both: int = 50
+    lr: float = 5e-3
+    identity_weight: float = 100.0
+
+
+def masked_render_loss(envmap: EnvironmentMap, n1: Tensor, n2: Tensor, cameras: Cameras, image: Tensor,
+                       mask: Tensor, view_dirs: Tensor | None = None) -> Tensor:
+    """The paper's L = ||(I - (I^r + I^t)) ⊙ M^tr||², averaged over the usable pixels (in the mask
+    and not TIR). n1, n2 (V,3,H,W) camera frame; image (V,H,W,3); mask (V,H,W)."""
+    out = render_layer(envmap, n1.permute(0, 2, 3, 1), n2.permute(0, 2, 3, 1), cameras, view_dirs=view_dirs)
+    usable = (mask & ~out.tir).unsqueeze(-1).to(image.dtype)
+    return (((image - out.image) * usable) ** 2).sum() / (usable.sum() * 3).clamp(min=1)
+
+
+def optimize_latent(net: NormalNet, inputs: Tensor, cost_volume: Tensor | None, envmap: EnvironmentMap,
+                    image: Tensor, mask: Tensor, cameras: Cameras, config: LatentOptConfig | None = None,
+                    ) -> tuple[Tensor, Tensor, list[float]]:
+    """Returns the optimized (n1, n2), each (V,3,H,W), and the loss after every step."""
+    config = config or LatentOptConfig()
+    for p in net.parameters():
+        p.requires_grad_(False)
+    with torch.no_grad():
+        latent0 = net.encode(inputs, cost_volume)
+        n1_init, _ = net.decode(latent0)
+    latent = latent0.clone().requires_grad_(True)
+    opt = torch.optim.Adam([latent], lr=config.lr)
+    dirs = cameras.pixel_rays()[1].to(image)
+    m = mask.unsqueeze(1).to(image.dtype)
+    history = []
+    for step in range(config.iterations_n2 + config.iterations_both):
+        n1, n2 = net.decode(latent)
+        loss = masked_render_loss(envmap, n1, n2, cameras, image, mask, view_dirs=dirs)
+        history.append(float(loss.detach()))
+        if step < config.iterations_n2:
+            loss = loss + config.identity_weight * (((n1 - n1_init) * m) ** 2).sum() / (m.sum() * 3).clamp(min=1)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        n1, n2 = net.decode(latent)
+        history.append(float(masked_render_loss(envmap, n1, n2, cameras, image, mask, view_dirs=dirs)))
+    return n1, n2, history
