@@ -1,0 +1,519 @@
+"""Synthetic training data on disk: `lookingglass generate` (issue #3, item 4).
+
+One scene = a random procedural glass shape (`shapes.random_shape`), an environment map from the
+pool (`envmaps.EnvmapSampler`), the paper's camera rig (`rigs.paper_rig_params`), the rendered
+images and ground-truth two-bounce maps (`render.tracer.render_views`), the visual hull carved from
+the rendered masks (`hull.carve_visual_hull`) and the hull's own two-bounce maps
+(`render.tracer.trace_two_bounce`): everything the normal and point networks train on.
+
+Layout (DIR/SPLIT/...):
+
+    config.json              {"format", "split", "seed", "views", "config": DatasetConfig}
+    scene_00000/
+        maps.npz             np.savez_compressed, no object arrays (np.load(allow_pickle=False)):
+            image   (V, H, W, 3) float16  linear radiance in the environment map's units,
+                                          *not* normalized (clipped at 65504, float16's max)
+            mask    (V, H, W)    bool     the object covers the pixel centre
+            n1, n2  (V, H, W, 3) float16  GT normals at the first / second hit, camera frame
+                                          (x right, y up, z towards the camera), outward, 0 where
+                                          the hit does not exist
+            valid   (V, H, W)    bool     the two-bounce model explains the pixel (TwoBounce.valid)
+            tir     (V, H, W)    bool     total internal reflection at the second hit
+            vh_mask, vh_n1, vh_n2, vh_valid, vh_tir: the same for the visual hull
+        mesh.ply             ground truth, world frame = unit-sphere frame (binary PLY, float32)
+        hull.npz             visual hull, the same world frame: vertices (N, 3) float32, faces
+                             (F, 3) int32, compressed (LS3-subdivided hulls have ~100k faces: a PLY
+                             would take 2 MB, this 0.8 MB; `load_scene_mesh(dir, "hull")` reads it)
+        meta.json            cameras (look-at origin/target/up, fov_x_deg, width, height), the
+                             environment map's description (`envmaps.envmap_from_description`
+                             regenerates the pixels), seeds, hull frame and coverage, timings.
+                             Written last, atomically: a scene is finished iff meta.json exists.
+
+Rendering happens directly at the network's resolution (cpu preset 128 x 96, paper preset
+256 x 192, DESIGN.md): the image is anti-aliased by s x s stratified samples per pixel (a box
+filter, the same as area-downsampling a larger render), the two-bounce maps are taken at the pixel
+centres, exactly as the pipeline traces the hull's maps at the network's resolution
+(`normals.inputs.prepare_inputs`). The environment map is rendered at the height the dataset
+serves it at (cpu 128 x 256, paper 256 x 512), so image and E agree exactly.
+
+Determinism: scene i is a function of (seed, split, i) alone -- its seeds come from
+`np.random.SeedSequence(seed, spawn_key=(split code, i))` -- and every scene is made with one
+torch thread and one Embree thread, so any order, worker count or sharding writes identical
+arrays. train and test draw from disjoint seed streams, and the natural environment maps are
+split too: `DatasetConfig.test_envmaps` (2 of the 9) light only test scenes, the other 7 only
+training scenes (procedural maps come from the split's own seed stream).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import multiprocessing
+import os
+import re
+import shutil
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import LookingGlassError
+from ..hull import HullConfig
+from .shapes import ShapeConfig
+
+FORMAT_VERSION = 1
+SPLITS = {"train": 0, "test": 1}
+RIG_VIEWS = (5, 10, 20)
+FLOAT16_MAX = 65504.0
+MAP_KEYS = ("image", "mask", "n1", "n2", "valid", "tir", "vh_mask", "vh_n1", "vh_n2", "vh_valid", "vh_tir")
+SCENE_FILES = ("maps.npz", "mesh.ply", "hull.npz", "meta.json")
+MAX_ATTEMPTS = 4
+
+
+@dataclass
+class DatasetConfig:
+    """What a scene looks like; saved as DIR/SPLIT/config.json. Plain fields (JSON-able).
+
+    width, height: rendered (= stored = network) image size. fov_x_deg: horizontal field of view.
+    envmap_height: the environment map is rendered and served at envmap_height x 2 envmap_height.
+    samples_per_axis: anti-aliasing, s x s stratified jittered samples per pixel.
+    max_depth, prune_threshold: light transport (see `render.tracer.RenderConfig`).
+    ior, ext_ior: glass and air (DESIGN.md).
+    p_procedural: chance that a scene's map is procedural rather than an augmented natural one.
+    test_envmaps: natural maps (file names) kept for the test split; training uses the others.
+    hull: visual hull settings (its num_threads is overridden: one thread per worker).
+    shape: the procedural shape distribution.
+    """
+
+    preset: str = "cpu"
+    width: int = 128
+    height: int = 96
+    fov_x_deg: float = 63.4
+    envmap_height: int = 128
+    samples_per_axis: int = 2
+    max_depth: int = 64
+    prune_threshold: float = 1e-3
+    ior: float = 1.4723
+    ext_ior: float = 1.0003
+    p_procedural: float = 0.5
+    test_envmaps: tuple[str, ...] = ("forest_slope_1k.hdr", "potsdamer_platz_1k.hdr")
+    hull: HullConfig = field(default_factory=HullConfig)
+    shape: ShapeConfig = field(default_factory=ShapeConfig)
+
+    @classmethod
+    def preset_named(cls, name: str) -> "DatasetConfig":
+        """"cpu": 128 x 96 images (the cpu normal net's size), E 256 x 128, 4 spp -- about
+        2.5 s per 10-view scene on one core. "paper": 256 x 192 images (the paper's network
+        resolution), E 512 x 256, 9 spp (about the samples of the paper's 480 x 360 4-spp renders
+        area-downsampled to 256 x 192)."""
+        if name == "cpu":
+            return cls()
+        if name == "paper":
+            return cls(preset="paper", width=256, height=192, envmap_height=256, samples_per_axis=3)
+        raise LookingGlassError(f"unknown dataset preset '{name}' (choose from cpu, paper)")
+
+    def to_dict(self) -> dict:
+        """JSON-normalized dict (tuples as lists), the form config.json holds."""
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "DatasetConfig":
+        from ..config import config_from_dict
+
+        return config_from_dict(cls, data, where="dataset config")
+
+
+# ---------------------------------------------------------------------------------------------
+# arguments
+# ---------------------------------------------------------------------------------------------
+def parse_shard(text: str) -> tuple[int, int]:
+    """"K/N" -> (K, N) with 1 <= K <= N; scenes i with i % N == K - 1 belong to shard K."""
+    m = re.fullmatch(r"\s*(\d+)\s*/\s*(\d+)\s*", str(text))
+    if not m:
+        raise LookingGlassError(f"--shard must look like K/N (e.g. 2/8), got {text!r}")
+    k, n = int(m.group(1)), int(m.group(2))
+    if n < 1 or not 1 <= k <= n:
+        raise LookingGlassError(f"--shard K/N needs 1 <= K <= N (K counts from 1), got {text!r}")
+    return k, n
+
+
+def _check_args(scenes: int, views: int, split: str, shard: tuple[int, int], workers: int | None) -> None:
+    if scenes < 1:
+        raise LookingGlassError(f"--scenes must be at least 1, got {scenes}")
+    if views not in RIG_VIEWS:
+        raise LookingGlassError(f"--views must be 5, 10 or 20 (the paper's rigs), got {views}")
+    if split not in SPLITS:
+        raise LookingGlassError(f"--split must be train or test, got {split!r}")
+    k, n = shard
+    if n < 1 or not 1 <= k <= n:
+        raise LookingGlassError(f"shard {k}/{n}: need 1 <= K <= N")
+    if workers is not None and workers < 0:
+        raise LookingGlassError(f"--workers must be >= 0 (0: one per CPU core), got {workers}")
+
+
+def scene_name(index: int) -> str:
+    return f"scene_{index:05d}"
+
+
+def scene_seeds(seed: int, split: str, index: int, attempt: int = 0) -> dict[str, int]:
+    """The seeds of scene `index`: a function of (seed, split, index, attempt) only.
+    attempt > 0 redraws a scene whose first draw failed (a degenerate shape or hull)."""
+    key = (SPLITS[split], int(index)) + ((int(attempt),) if attempt else ())
+    s = np.random.SeedSequence(int(seed), spawn_key=key).generate_state(4, dtype=np.uint64)
+    s = [int(x >> np.uint64(1)) for x in s]  # 63-bit: fits every consumer (numpy, int64)
+    return {"shape": s[0], "rig": s[1], "envmap": s[2], "render": s[3] & 0xFFFFFFFF}
+
+
+def split_envmap_names(config: DatasetConfig, split: str, folder=None) -> list[str] | None:
+    """Natural map names a split may use: test -> config.test_envmaps, train -> the others.
+    None when the folder has no natural maps (the sampler then errors unless p_procedural = 1)."""
+    from .envmaps import natural_envmaps
+
+    names = [p.name for p in natural_envmaps(folder)]
+    if not names:
+        return None
+    held = set(config.test_envmaps)
+    chosen = [n for n in names if (n in held) == (split == "test")]
+    if not chosen and config.p_procedural < 1:
+        raise LookingGlassError(f"no natural environment maps left for the {split} split "
+                                f"(test_envmaps = {list(config.test_envmaps)})")
+    return chosen
+
+
+# ---------------------------------------------------------------------------------------------
+# one scene
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class SceneData:
+    """A generated scene in memory: `maps` (MAP_KEYS, the stored dtypes), the meshes, meta."""
+
+    maps: dict[str, np.ndarray]
+    mesh: "object"
+    hull: "object"
+    meta: dict
+
+
+def _f16(x) -> np.ndarray:
+    a = np.asarray(x.detach().cpu().numpy() if hasattr(x, "detach") else x, dtype=np.float32)
+    return np.clip(a, -FLOAT16_MAX, FLOAT16_MAX).astype(np.float16)
+
+
+def _bool(x) -> np.ndarray:
+    return np.asarray(x.detach().cpu().numpy() if hasattr(x, "detach") else x, dtype=bool)
+
+
+def _float32_vertices(mesh):
+    """Round the vertices to float32 -- what the PLY file stores -- so the stored mesh is exactly
+    the one rendered and traced."""
+    mesh.vertices = np.asarray(mesh.vertices, dtype=np.float32).astype(np.float64)
+    return mesh
+
+
+def make_scene(index: int, split: str, seed: int, views: int, config: DatasetConfig,
+               envmap_folder=None, attempt: int = 0) -> SceneData:
+    """Generate scene `index` of a split in memory (single-threaded: one torch and one Embree
+    thread). Raises on a degenerate draw; `generate_scene` retries with the next attempt."""
+    import torch
+
+    from ..physics.camera import Cameras
+    from ..physics.environment import EnvironmentMap
+    from ..render.tracer import RenderConfig, render_views, trace_two_bounce
+    from ..threads import torch_threads
+    from .envmaps import EnvmapSampler
+    from .rigs import paper_rig_params
+    from .shapes import random_shape, shape_stats
+    from ..hull import carve_visual_hull
+
+    seeds = scene_seeds(seed, split, index, attempt)
+    timings: dict[str, float] = {}
+    clock = [time.perf_counter()]
+
+    def lap(name: str) -> None:
+        now = time.perf_counter()
+        timings[name] = round(now - clock[0], 4)
+        clock[0] = now
+
+    with torch_threads(1), warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mesh = _float32_vertices(random_shape(seeds["shape"], config.shape))
+        lap("shape")
+        sampler = EnvmapSampler(envmap_folder, config.envmap_height, config.p_procedural, seed=seeds["envmap"],
+                                names=split_envmap_names(config, split, envmap_folder))
+        env, env_desc = sampler.sample(0)
+        lap("envmap")
+        rig = paper_rig_params(views, np.random.default_rng(seeds["rig"]))
+        cams = Cameras.look_at(rig["origin"], rig["target"], rig["up"], config.fov_x_deg,
+                               config.width, config.height)
+        rcfg = RenderConfig(ior=config.ior, ext_ior=config.ext_ior, max_depth=config.max_depth,
+                            samples_per_axis=config.samples_per_axis, seed=seeds["render"],
+                            prune_threshold=config.prune_threshold, threads=1)
+        res = render_views(mesh, EnvironmentMap(torch.from_numpy(np.ascontiguousarray(env))), cams, rcfg)
+        lap("render")
+        timings["render_two_bounce"] = round(res.stats.seconds_two_bounce, 4)
+        hcfg = dataclasses.replace(config.hull, num_threads=1)
+        vh = carve_visual_hull(res.mask, cams, hcfg)
+        hull = _float32_vertices(vh.mesh)
+        lap("hull")
+        tb = trace_two_bounce(hull, cams, config.ior, config.ext_ior, threads=1)
+        lap("hull_two_bounce")
+
+    image = res.image.numpy()
+    maps = {
+        "image": _f16(image), "mask": _bool(res.mask), "n1": _f16(res.normal1), "n2": _f16(res.normal2),
+        "valid": _bool(res.two_bounce_valid), "tir": _bool(res.tir),
+        "vh_mask": _bool(tb.mask), "vh_n1": _f16(tb.normal1), "vh_n2": _f16(tb.normal2),
+        "vh_valid": _bool(tb.valid), "vh_tir": _bool(tb.tir),
+    }
+    meta = {
+        "format": FORMAT_VERSION, "index": int(index), "split": split, "dataset_seed": int(seed),
+        "attempt": int(attempt), "seeds": seeds, "views": int(views),
+        "width": config.width, "height": config.height, "ior": config.ior, "ext_ior": config.ext_ior,
+        "cameras": {"origin": rig["origin"].tolist(), "target": rig["target"].tolist(), "up": rig["up"].tolist(),
+                    "fov_x_deg": [float(config.fov_x_deg)] * views,
+                    "polar_deg": rig["polar_deg"].tolist(), "azimuth_deg": rig["azimuth_deg"].tolist()},
+        "envmap": env_desc, "envmap_height": config.envmap_height,
+        "shape": shape_stats(mesh),
+        "hull": {"faces": int(len(hull.faces)), "center": vh.center.tolist(), "scale": float(vh.scale),
+                 "voxel_size": float(vh.voxel_size), "view_coverage": vh.view_coverage.tolist()},
+        "stats": {"object_pixels": int(maps["mask"].sum()), "valid_pixels": int(maps["valid"].sum()),
+                  "tir_pixels": int(maps["tir"].sum()),
+                  "clipped_pixels": int((image > FLOAT16_MAX).any(-1).sum()),
+                  "image_mean": float(image.astype(np.float64).mean())},
+        "warnings": sorted({str(w.message) for w in caught}),
+        "timings": timings,
+    }
+    return SceneData(maps, mesh, hull, meta)
+
+
+def write_scene(scene_dir: Path, data: SceneData) -> dict:
+    """Write a scene's files, meta.json last (each atomically). Returns meta (with write time
+    and file sizes added)."""
+    from ..fileio import write_atomic, write_json
+
+    t0 = time.perf_counter()
+    scene_dir.mkdir(parents=True, exist_ok=True)
+    write_atomic(scene_dir / "maps.npz", lambda p: np.savez_compressed(p, **data.maps))
+    write_atomic(scene_dir / "mesh.ply", lambda p: data.mesh.export(p, file_type="ply", vertex_normal=False))
+    write_atomic(scene_dir / "hull.npz", lambda p: np.savez_compressed(
+        p, vertices=np.asarray(data.hull.vertices, dtype=np.float32), faces=np.asarray(data.hull.faces, dtype=np.int32)))
+    meta = dict(data.meta)
+    meta["timings"] = {**meta["timings"], "write": round(time.perf_counter() - t0, 4)}
+    meta["files"] = {n: (scene_dir / n).stat().st_size for n in SCENE_FILES[:-1]}
+    write_json(scene_dir / "meta.json", meta)
+    return meta
+
+
+def is_finished(scene_dir: Path, index: int | None = None) -> bool:
+    """A scene is finished when its meta.json (written last) parses, names the scene and every
+    data file is there."""
+    try:
+        meta = json.loads((scene_dir / "meta.json").read_text())
+    except (OSError, ValueError):
+        return False
+    if meta.get("format") != FORMAT_VERSION or (index is not None and meta.get("index") != index):
+        return False
+    return all((scene_dir / n).is_file() for n in SCENE_FILES)
+
+
+def generate_scene(split_dir: Path, index: int, split: str, seed: int, views: int, config: DatasetConfig,
+                   envmap_folder=None) -> dict | None:
+    """Make and write scene `index` unless it is finished. Returns its meta, or None if skipped."""
+    scene_dir = Path(split_dir) / scene_name(index)
+    if is_finished(scene_dir, index):
+        return None
+    if scene_dir.exists():  # half-written: start over
+        shutil.rmtree(scene_dir)
+    errors = []
+    for attempt in range(MAX_ATTEMPTS):
+        try:
+            data = make_scene(index, split, seed, views, config, envmap_folder, attempt)
+        except (LookingGlassError, RuntimeError, ValueError) as exc:  # degenerate shape or hull
+            errors.append(f"attempt {attempt}: {type(exc).__name__}: {exc}")
+            continue
+        return write_scene(scene_dir, data)
+    raise RuntimeError(f"scene {index} of {split}: every draw failed ({'; '.join(errors)})")
+
+
+# ---------------------------------------------------------------------------------------------
+# the whole split
+# ---------------------------------------------------------------------------------------------
+def _split_config(split: str, seed: int, views: int, config: DatasetConfig) -> dict:
+    return {"format": FORMAT_VERSION, "split": split, "seed": int(seed), "views": int(views),
+            "config": config.to_dict()}
+
+
+def _diff_keys(a, b, prefix="") -> list[str]:
+    if isinstance(a, dict) and isinstance(b, dict):
+        out = []
+        for k in sorted(set(a) | set(b)):
+            out += _diff_keys(a.get(k), b.get(k), f"{prefix}{k}.")
+        return out
+    return [] if a == b else [prefix.rstrip(".")]
+
+
+def prepare_split_dir(out, split: str, seed: int, views: int, config: DatasetConfig) -> Path:
+    """Create OUT/SPLIT with its config.json, or check that an existing one matches."""
+    from ..fileio import write_json
+
+    split_dir = Path(out) / split
+    wanted = _split_config(split, seed, views, config)
+    path = split_dir / "config.json"
+    if path.exists():
+        try:
+            saved = json.loads(path.read_text())
+        except ValueError:
+            raise LookingGlassError("cannot parse the dataset config; remove it or use another --out", path) from None
+        diff = _diff_keys(saved, wanted)
+        if diff:
+            raise LookingGlassError(
+                f"this folder holds scenes made with other settings (differs in: {', '.join(diff[:8])}"
+                f"{' ...' if len(diff) > 8 else ''}); resume with the same --preset/--views/--seed or use "
+                f"another --out", path)
+    else:
+        split_dir.mkdir(parents=True, exist_ok=True)
+        write_json(path, wanted)
+    return split_dir
+
+
+def _check_envmaps(config: DatasetConfig, split: str, folder) -> None:
+    """Fail early (before any worker starts) when the split's environment maps are missing."""
+    from .envmaps import EnvmapSampler
+
+    EnvmapSampler(folder, config.envmap_height, config.p_procedural, names=split_envmap_names(config, split, folder))
+
+
+def _worker_init() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+    warnings.simplefilter("ignore")  # recorded per scene in meta.json instead
+
+
+def _worker(task: tuple) -> tuple[int, dict | None]:
+    split_dir, index, split, seed, views, config, folder = task
+    return index, generate_scene(Path(split_dir), index, split, seed, views, config, folder)
+
+
+def generate_dataset(out, scenes: int, views: int = 10, split: str = "train", seed: int = 0,
+                     config: DatasetConfig | None = None, workers: int | None = 1,
+                     shard: tuple[int, int] = (1, 1), reporter=None, envmap_folder=None) -> dict:
+    """Write scenes 0..scenes-1 of `split` (those of `shard` K/N: i % N == K - 1) into OUT/SPLIT.
+
+    Finished scenes are skipped, half-written ones redone. workers: processes (spawned, one
+    torch / Embree thread each); None or 0 = one per CPU core. Returns a summary dict:
+    {"split_dir", "scenes" (indices of this shard), "made", "skipped", "seconds", "timings"
+    (mean seconds per part over the scenes made)}.
+    """
+    from ..progress import Reporter
+
+    config = config or DatasetConfig()
+    _check_args(scenes, views, split, shard, workers)
+    if envmap_folder is None:
+        from .envmaps import default_envmap_folder
+
+        envmap_folder = default_envmap_folder()
+    _check_envmaps(config, split, envmap_folder)
+    reporter = reporter or Reporter(quiet=True)
+    split_dir = prepare_split_dir(out, split, seed, views, config)
+    k, n = shard
+    mine = [i for i in range(scenes) if i % n == k - 1]
+    todo = [i for i in mine if not is_finished(split_dir / scene_name(i), i)]
+    skipped = len(mine) - len(todo)
+    if skipped:
+        reporter.info(f"{skipped} of {len(mine)} scenes already finished in {split_dir}")
+    workers = workers or os.cpu_count() or 1
+    workers = max(1, min(workers, len(todo)))
+    tasks = [(str(split_dir), i, split, seed, views, config, str(envmap_folder)) for i in todo]
+    metas: list[dict] = []
+    start = time.perf_counter()
+    desc = f"{split} scenes" + (f" (shard {k}/{n})" if n > 1 else "")
+    if workers == 1 or not todo:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            for task in reporter.track(tasks, total=len(tasks), description=desc):
+                _, meta = _worker(task)
+                if meta:
+                    metas.append(meta)
+    else:
+        # spawn: a fresh interpreter per worker (fork after torch / OpenMP start-up can hang);
+        # one BLAS / OpenMP thread each, set before the child imports anything.
+        saved = {v: os.environ.get(v) for v in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+        os.environ.update({v: "1" for v in saved})
+        try:
+            ctx = multiprocessing.get_context("spawn")
+            with ctx.Pool(workers, initializer=_worker_init) as pool:
+                results = pool.imap_unordered(_worker, tasks, chunksize=1)
+                for _, meta in reporter.track(results, total=len(tasks), description=desc):
+                    if meta:
+                        metas.append(meta)
+        finally:
+            for v, old in saved.items():
+                if old is None:
+                    os.environ.pop(v, None)
+                else:
+                    os.environ[v] = old
+    seconds = time.perf_counter() - start
+    parts = sorted({p for m in metas for p in m["timings"]})
+    timings = {p: float(np.mean([m["timings"].get(p, 0.0) for m in metas])) for p in parts}
+    return {"split_dir": str(split_dir), "scenes": mine, "made": sorted(m["index"] for m in metas),
+            "skipped": skipped, "seconds": seconds, "workers": workers, "timings": timings}
+
+
+# ---------------------------------------------------------------------------------------------
+# reading
+# ---------------------------------------------------------------------------------------------
+def load_maps(scene_dir) -> dict[str, np.ndarray]:
+    """The arrays of maps.npz (stored dtypes), read without unpickling."""
+    path = Path(scene_dir) / "maps.npz"
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError) as exc:
+        raise LookingGlassError(f"cannot read scene maps ({exc})", path) from None
+
+
+def load_scene_meta(scene_dir) -> dict:
+    path = Path(scene_dir) / "meta.json"
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise LookingGlassError(f"cannot read scene meta ({exc})", path) from None
+
+
+def load_scene_mesh(scene_dir, which: str = "mesh"):
+    """The ground truth ("mesh") or the visual hull ("hull") as trimesh.Trimesh, world frame,
+    exactly as stored (no vertex merging)."""
+    import trimesh
+
+    if which == "mesh":
+        path = Path(scene_dir) / "mesh.ply"
+        if not path.is_file():
+            raise LookingGlassError("ground-truth mesh not found", path)
+        return trimesh.load(path, file_type="ply", process=False, force="mesh")
+    if which == "hull":
+        path = Path(scene_dir) / "hull.npz"
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                v, f = z["vertices"].astype(np.float64), z["faces"].astype(np.int64)
+        except (OSError, ValueError, KeyError) as exc:
+            raise LookingGlassError(f"cannot read the visual hull ({exc})", path) from None
+        return trimesh.Trimesh(v, f, process=False, validate=False)
+    raise ValueError(f'which must be "mesh" or "hull", not {which!r}')
+
+
+def scene_cameras(meta: dict, dtype=None):
+    """The scene's `Cameras` (V views of meta width x height) from meta.json."""
+    import torch
+
+    from ..physics.camera import Cameras
+
+    c = meta["cameras"]
+    return Cameras.look_at(c["origin"], c["target"], c["up"], c["fov_x_deg"], meta["width"], meta["height"],
+                           dtype=dtype or torch.float32)
+
+
+__all__ = ["DatasetConfig", "SceneData", "generate_dataset", "generate_scene", "make_scene", "write_scene",
+           "parse_shard", "scene_seeds", "scene_name", "is_finished", "load_maps", "load_scene_meta",
+           "load_scene_mesh", "scene_cameras", "split_envmap_names"]
