@@ -153,6 +153,18 @@ def _check_args(scenes: int, views: int, split: str, shard: tuple[int, int], wor
         raise LookingGlassError(f"--workers must be >= 0 (0: one per CPU core), got {workers}")
 
 
+def rig_subset(stored_views: int, views: int) -> list[int]:
+    """Indices of the `views`-view paper rig inside the `stored_views`-view one (the rigs are
+    nested, 5 in 10 in 20: `rigs.py`), in the smaller rig's order. E.g. (10, 5) -> [0, 6, 2, 8, 4]."""
+    from .rigs import rig_layout
+
+    if views not in RIG_VIEWS or stored_views not in RIG_VIEWS or views > stored_views:
+        raise LookingGlassError(f"cannot take a {views}-view rig out of {stored_views} views "
+                                f"(rigs have 5, 10 or 20 views; at most the stored number)")
+    big = list(zip(*rig_layout(stored_views)[:2]))
+    return [big.index(a) for a in zip(*rig_layout(views)[:2])]
+
+
 def scene_name(index: int) -> str:
     return f"scene_{index:05d}"
 
@@ -515,5 +527,5 @@ def scene_cameras(meta: dict, dtype=None):
 
 
 __all__ = ["DatasetConfig", "SceneData", "generate_dataset", "generate_scene", "make_scene", "write_scene",
-           "parse_shard", "scene_seeds", "scene_name", "is_finished", "load_maps", "load_scene_meta",
+           "parse_shard", "rig_subset", "scene_seeds", "scene_name", "is_finished", "load_maps", "load_scene_meta",
            "load_scene_mesh", "scene_cameras", "split_envmap_names"]

@@ -1,0 +1,157 @@
+"""A torch `Dataset` over the scenes `lookingglass generate` writes (see `data/dataset.py`).
+
+Normalization (DESIGN.md, "Image units"): the stored images are linear HDR radiance. Per scene,
+one factor k = target_mean / mean(images) is computed over *all* pixels of *all* the scene's views
+and all three channels (not only the mask: the background matters to the network as much as the
+object, and at inference `normals.inputs.prepare_inputs` uses the same rule through the same
+function, `exposure_factor`). The image becomes clip(k * image, 0, 1); the environment map gets
+the same k and is *not* clipped (it stays HDR: the rendering layer must see the sun as bright as
+it is). target_mean is 0.5; with augment=True it is drawn from U[0.4, 0.6] per item.
+
+Augmentation: only that exposure draw. Mirroring an image would need a mirrored world per view
+(one environment map cannot be mirrored consistently for every camera of a rig), and rotating
+world + environment about +y leaves every camera-frame quantity unchanged, so neither is done.
+The random state of item i is numpy default_rng([seed, i, n]) with n the number of times this
+Dataset object has served item i, so a run is reproducible for a seed (with DataLoader workers,
+each worker counts its own draws).
+
+Every item is a dict of tensors (V views, H x W, He x 2He environment):
+    image            (V, 3, H, W) float32  normalized and clipped to [0, 1]
+    mask             (V, H, W)    bool     object mask
+    n1, n2           (V, 3, H, W) float32  GT normals at the first / second hit, camera frame
+    valid            (V, H, W)    bool     the GT two-bounce path is valid (N2 supervised there)
+    tir              (V, H, W)    bool     total internal reflection at the second hit
+    vh_mask          (V, H, W)    bool     the visual hull covers the pixel centre
+    vh_n1, vh_n2     (V, 3, H, W) float32  the hull's two-bounce normals (Ñ1, Ñ2), camera frame
+    vh_valid, vh_tir (V, H, W)    bool
+    envmap           (3, He, 2He) float32  the environment map times the same factor
+    origin, target, up (V, 3)     float32  look-at cameras, world frame
+    fov_x_deg        (V,)         float32
+    factor           ()           float32  the factor applied to the stored radiance
+    target_mean      ()           float32  the mean the factor aimed at
+    index            ()           int64    the item index
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from ..errors import LookingGlassError
+from .dataset import (SPLITS, DatasetConfig, is_finished, load_maps, load_scene_mesh, load_scene_meta,
+                      rig_subset)
+
+_IMAGE_KEYS = ("image", "n1", "n2", "vh_n1", "vh_n2")  # (V, H, W, 3) -> (V, 3, H, W)
+
+
+@functools.lru_cache(maxsize=32)
+def _cached_envmap(desc_json: str, folder: str | None, height: int) -> np.ndarray:
+    from .envmaps import envmap_from_description
+
+    env = envmap_from_description(json.loads(desc_json), folder, height)
+    env.setflags(write=False)
+    return env
+
+
+def scene_envmap(meta: dict, folder=None) -> np.ndarray:
+    """The scene's environment map (He, 2He, 3) float32, unnormalized, regenerated from its
+    description at the height it was rendered with; cached (the last 32 maps per process).
+    The array is read-only and shared."""
+    desc = json.dumps(meta["envmap"], sort_keys=True)
+    return _cached_envmap(desc, None if folder is None else str(folder), int(meta["envmap_height"]))
+
+
+class TransparentSceneDataset(Dataset):
+    """The finished scenes of ROOT/SPLIT, in index order.
+
+    root: the folder given to `lookingglass generate --out`. split: "train" or "test".
+    views: None for every stored view, or 5 / 10 / 20 to serve that paper rig out of a larger
+        stored one (the rigs are nested; note the hull maps still come from all stored views,
+        so they are better than a hull carved from the subset alone).
+    augment: draw the normalization's target mean from `mean_range` (else `target_mean`).
+    seed: seed of the augmentation draws. envmap_folder: where the natural maps are
+        (default `envmaps.default_envmap_folder()`).
+    """
+
+    def __init__(self, root, split: str = "train", views: int | None = None, augment: bool = False,
+                 seed: int = 0, target_mean: float = 0.5, mean_range: tuple[float, float] = (0.4, 0.6),
+                 envmap_folder=None):
+        if split not in SPLITS:
+            raise LookingGlassError(f"split must be train or test, got {split!r}")
+        self.split_dir = Path(root) / split
+        cfg_path = self.split_dir / "config.json"
+        if not cfg_path.is_file():
+            raise LookingGlassError("no dataset here (config.json missing); make one with `lookingglass generate`",
+                                    self.split_dir)
+        saved = json.loads(cfg_path.read_text())
+        self.config = DatasetConfig.from_dict(saved["config"])
+        self.stored_views = int(saved["views"])
+        self.view_index = None if views is None or views == self.stored_views else rig_subset(self.stored_views, views)
+        self.views = self.stored_views if views is None else int(views)
+        self.scene_dirs = sorted(p for p in self.split_dir.glob("scene_*") if p.is_dir() and is_finished(p))
+        if not self.scene_dirs:
+            raise LookingGlassError("no finished scenes (scene_*/meta.json)", self.split_dir)
+        self.augment, self.seed = bool(augment), int(seed)
+        self.target_mean, self.mean_range = float(target_mean), tuple(float(m) for m in mean_range)
+        self.envmap_folder = envmap_folder
+        self._draws: dict[int, int] = defaultdict(int)
+
+    def __len__(self) -> int:
+        return len(self.scene_dirs)
+
+    def meta(self, index: int) -> dict:
+        return load_scene_meta(self.scene_dirs[index])
+
+    def meshes(self, index: int):
+        """(ground truth, visual hull) of scene `index` as trimesh.Trimesh, world frame."""
+        d = self.scene_dirs[index]
+        return load_scene_mesh(d, "mesh"), load_scene_mesh(d, "hull")
+
+    def _target_mean(self, index: int) -> float:
+        if not self.augment:
+            return self.target_mean
+        rng = np.random.default_rng([self.seed, int(index), self._draws[index]])
+        self._draws[index] += 1
+        return float(rng.uniform(*self.mean_range))
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        from ..normals.inputs import exposure_factor
+
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"scene {index} out of range ({len(self)} scenes)")
+        index = index % len(self)
+        scene_dir = self.scene_dirs[index]
+        maps, meta = load_maps(scene_dir), load_scene_meta(scene_dir)
+        sel = slice(None) if self.view_index is None else self.view_index
+        maps = {k: v[sel] for k, v in maps.items()}
+        target = self._target_mean(index)
+        image = torch.from_numpy(maps["image"].astype(np.float32))
+        try:
+            factor = exposure_factor(image, target)
+        except ValueError as exc:
+            raise LookingGlassError(str(exc), scene_dir) from None
+        env = torch.from_numpy(scene_envmap(meta, self.envmap_folder).astype(np.float32))
+        out: dict[str, torch.Tensor] = {}
+        for key, value in maps.items():
+            t = torch.from_numpy(np.ascontiguousarray(value))
+            if key in _IMAGE_KEYS:
+                t = t.float().permute(0, 3, 1, 2).contiguous()
+            out[key] = t
+        out["image"] = (out["image"] * factor).clamp_(0.0, 1.0)
+        out["envmap"] = (env * factor).permute(2, 0, 1).contiguous()
+        cams = meta["cameras"]
+        for key in ("origin", "target", "up", "fov_x_deg"):
+            out[key] = torch.tensor(np.asarray(cams[key])[sel], dtype=torch.float32)
+        out["factor"] = torch.tensor(factor, dtype=torch.float32)
+        out["target_mean"] = torch.tensor(target, dtype=torch.float32)
+        out["index"] = torch.tensor(index, dtype=torch.int64)
+        return out
+
+
+__all__ = ["TransparentSceneDataset", "scene_envmap"]
