@@ -190,6 +190,38 @@ def generate(
                   f"({summary['seconds']:.1f} s, {summary['workers']} worker(s){rate})")
 
 
+@app.command("train-normals")
+def train_normals(
+    data: Path = typer.Option(..., "--data", help="Dataset folder made by `generate` (uses DATA/train)."),
+    out: Path = typer.Option(..., "--out", help="Run folder: config, checkpoints, metrics, weights."),
+    views: int = typer.Option(10, help="Views per scene to train on (5, 10 or 20; a subset of the stored rig)."),
+    preset: str = typer.Option("cpu", help="cpu or paper network sizes and schedule."),
+    variant: str = typer.Option("wr+cv", help="basic, wr or wr+cv (the paper's ablations)."),
+    epochs: Optional[int] = typer.Option(None, help="Override the preset's epochs."),
+    max_scenes: int = typer.Option(0, help="Use only the first N scenes (0: all)."),
+    device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
+    seed: int = typer.Option(0, help="Initialization and shuffling seed."),
+    quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
+) -> None:
+    """Train the normal network (resumes from OUT/checkpoint.pt; runs under torchrun for DDP)."""
+    from .config import resolve_device
+    from .data.torch_dataset import TransparentSceneDataset
+    from .normals.train import VARIANTS, train_normals as run, train_preset
+    from .progress import Reporter
+
+    if variant not in VARIANTS:
+        raise LookingGlassError(f"--variant must be one of {', '.join(VARIANTS)}, got {variant!r}")
+    config = train_preset(preset, views)
+    config.net.use_error_map, config.net.use_cost_volume = VARIANTS[variant]
+    config.seed, config.max_scenes = seed, max_scenes
+    if epochs is not None:
+        config.epochs = epochs
+    dataset = TransparentSceneDataset(data, "train", views=views, augment=True, seed=seed)
+    # The network runs at the data's resolution (the dataset preset matches the network preset).
+    config.net.width, config.net.height = dataset.config.width, dataset.config.height
+    run(dataset, out, config, device=resolve_device(device), reporter=Reporter(quiet=quiet))
+
+
 def main() -> None:
     """Entry point: user errors become one clear line on stderr and exit status 2."""
     try:

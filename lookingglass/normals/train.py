@@ -47,6 +47,10 @@ class TrainConfig:
     max_scenes: int = 0  # 0: all
 
 
+# The paper's ablations (Table 1): (use_error_map, use_cost_volume).
+VARIANTS = {"basic": (False, False), "wr": (True, False), "wr+cv": (True, True)}
+
+
 def train_preset(name: str, views: int = 10) -> TrainConfig:
     if name not in PRESETS:
         raise LookingGlassError(f"unknown preset '{name}' (choose from {', '.join(PRESETS)})")
