@@ -222,6 +222,33 @@ def train_normals(
     run(dataset, out, config, device=resolve_device(device), reporter=Reporter(quiet=quiet))
 
 
+@app.command("eval-normals")
+def eval_normals(
+    data: Path = typer.Option(..., "--data", help="Dataset folder with a test split (DATA/test)."),
+    weights: list[str] = typer.Option(..., "--weights", help="VARIANT=PATH (basic, wr, wr+cv); repeat."),
+    views: int = typer.Option(10, help="Views per scene."),
+    latent_iterations: int = typer.Option(50, help="Latent-optimization steps per phase for wr+cv+op (0: skip)."),
+    max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
+    quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
+) -> None:
+    """Print the paper's Table 1 (N1/N2 angle errors, render error) on the test split as markdown."""
+    from .data.torch_dataset import TransparentSceneDataset
+    from .normals.evaluate import evaluate_normals, markdown_table
+    from .normals.latent import LatentOptConfig
+    from .progress import Reporter
+
+    paths = {}
+    for item in weights:
+        name, sep, path = item.partition("=")
+        if not sep or name not in ("basic", "wr", "wr+cv"):
+            raise LookingGlassError(f"--weights takes VARIANT=PATH with VARIANT basic, wr or wr+cv, got {item!r}")
+        paths[name] = Path(path)
+    latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
+    dataset = TransparentSceneDataset(data, "test", views=views)
+    results = evaluate_normals(dataset, paths, latent, max_scenes, Reporter(quiet=quiet))
+    print(markdown_table(results))
+
+
 def main() -> None:
     """Entry point: user errors become one clear line on stderr and exit status 2."""
     try:

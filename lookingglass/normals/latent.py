@@ -11,7 +11,7 @@ from torch import Tensor
 from ..physics.camera import Cameras
 from ..physics.environment import EnvironmentMap
 from .model import NormalNet
-from .render_layer import render_layer
+from .render_layer import comparable, render_layer
 
 
 @dataclass
@@ -29,10 +29,10 @@ class LatentOptConfig:
 def masked_render_loss(envmap: EnvironmentMap, n1: Tensor, n2: Tensor, cameras: Cameras, image: Tensor,
                        mask: Tensor, view_dirs: Tensor | None = None) -> Tensor:
     """The paper's L = ||(I - (I^r + I^t)) ⊙ M^tr||², averaged over the usable pixels (in the mask
-    and not TIR). n1, n2 (V,3,H,W) camera frame; image (V,H,W,3); mask (V,H,W)."""
+    and not TIR); the rendering is clipped like the input. n1, n2 (V,3,H,W) camera frame; image (V,H,W,3); mask (V,H,W)."""
     out = render_layer(envmap, n1.permute(0, 2, 3, 1), n2.permute(0, 2, 3, 1), cameras, view_dirs=view_dirs)
     usable = (mask & ~out.tir).unsqueeze(-1).to(image.dtype)
-    return (((image - out.image) * usable) ** 2).sum() / (usable.sum() * 3).clamp(min=1)
+    return (((image - comparable(out.image)) * usable) ** 2).sum() / (usable.sum() * 3).clamp(min=1)
 
 
 def optimize_latent(net: NormalNet, inputs: Tensor, cost_volume: Tensor | None, envmap: EnvironmentMap,

@@ -59,6 +59,13 @@ def render_layer(envmap: EnvironmentMap, normal1: Tensor, normal2: Tensor, camer
     return LayerOutput(reflected, transmitted, tir)
 
 
+def comparable(rendered: Tensor) -> Tensor:
+    """A rendering clipped to [0, 1] like the normalized input photos, so the two compare: a
+    bright source seen through a wrong normal then costs at most 1 per channel."""
+    return rendered.clamp(0.0, 1.0)
+
+
 def error_map(image: Tensor, rendered: Tensor, mask: Tensor) -> Tensor:
-    """The paper's Ĩ^er = |I - (Ĩ^r + Ĩ^t)| ⊙ M: (V, H, W, 3) images, (V, H, W) mask."""
-    return (image - rendered).abs() * mask.unsqueeze(-1).to(image.dtype)
+    """The paper's Ĩ^er = |I - (Ĩ^r + Ĩ^t)| ⊙ M: (V, H, W, 3) images (`image` normalized and
+    clipped, `rendered` clipped here), (V, H, W) mask."""
+    return (image - comparable(rendered)).abs() * mask.unsqueeze(-1).to(image.dtype)

@@ -1,0 +1,97 @@
+"""The paper's Table 1 on a test split: N1/N2 angle errors and render error for the visual hull
+and each trained variant (basic, wr, wr+cv), plus wr+cv with latent optimization (wr+cv+op).
+
+Statistics pool every pixel of every view of every scene: N1 over the object mask, N2 over the
+pixels whose true path has exactly two interfaces (the dataset's `valid`), render error over the
+mask (mean squared difference of the rendering layer's image, clipped to [0, 1] like the
+normalized input, and that input, x 1e-2
+in the table, as the paper reports it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..progress import Reporter
+from .latent import LatentOptConfig, optimize_latent
+from .render_layer import comparable, render_layer
+from .train import load_weights, scene_tensors
+
+
+def _angles(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> np.ndarray:
+    """Angles in degrees between (V,3,H,W) normal maps over mask (V,H,W)."""
+    a = torch.nn.functional.normalize(a, dim=1).permute(0, 2, 3, 1)[mask]
+    b = torch.nn.functional.normalize(b, dim=1).permute(0, 2, 3, 1)[mask]
+    return torch.rad2deg(torch.atan2(torch.linalg.cross(a, b, dim=-1).norm(dim=-1), (a * b).sum(-1))).numpy()
+
+
+@dataclass
+class _Row:
+    n1: list = field(default_factory=list)
+    n2: list = field(default_factory=list)
+    sq_err: float = 0.0
+    count: int = 0
+    seconds: float = 0.0
+
+    def add(self, n1, n2, t, seconds=0.0):
+        self.n1.append(_angles(n1, t["n1"], t["mask"]))
+        self.n2.append(_angles(n2, t["n2"], t["n2_valid"]))
+        out = render_layer(t["envmap"], n1.permute(0, 2, 3, 1), n2.permute(0, 2, 3, 1), t["cameras"])
+        m = t["mask"]
+        self.sq_err += float(((comparable(out.image) - t["image"])[m] ** 2).sum())
+        self.count += int(m.sum()) * 3
+        self.seconds += seconds
+
+    def summary(self) -> dict:
+        n1, n2 = np.concatenate(self.n1), np.concatenate(self.n2)
+        return {"n1_median": float(np.median(n1)), "n1_mean": float(n1.mean()), "n2_median": float(np.median(n2)),
+                "n2_mean": float(n2.mean()), "render_error": self.sq_err / max(self.count, 1)}
+
+
+def evaluate_normals(dataset, weights: dict[str, Path], latent: LatentOptConfig | None = None,
+                     max_scenes: int = 0, reporter: Reporter | None = None) -> dict[str, dict]:
+    """Rows of Table 1. weights maps a variant name (basic, wr, wr+cv) to its weights file;
+    `wr+cv+op` is added when wr+cv is given and `latent` is not None."""
+    import time
+
+    reporter = reporter or Reporter(quiet=True)
+    nets = {name: load_weights(path) for name, path in weights.items()}
+    rows = {"vh": _Row(), **{name: _Row() for name in nets}}
+    if "wr+cv" in nets and latent is not None:
+        rows["wr+cv+op"] = _Row()
+    n = len(dataset) if not max_scenes else min(max_scenes, len(dataset))
+    for i in reporter.track(range(n), description="test scenes"):
+        sample = dataset[i]
+        base = None
+        for name, net in nets.items():
+            t = scene_tensors(sample, net.cfg, 1.4723)
+            base = base or t
+            start = time.perf_counter()
+            with torch.no_grad():
+                n1, n2 = net(t["inputs"], t["cost_volume"])
+            rows[name].add(n1, n2, t, time.perf_counter() - start)
+            if name == "wr+cv" and "wr+cv+op" in rows:
+                start = time.perf_counter()
+                o1, o2, _ = optimize_latent(net, t["inputs"], t["cost_volume"], t["envmap"], t["image"], t["mask"],
+                                            t["cameras"], latent)
+                rows["wr+cv+op"].add(o1.detach(), o2.detach(), t, time.perf_counter() - start)
+        if base is None:
+            from .model import NormalNetConfig
+
+            base = scene_tensors(sample, NormalNetConfig(use_error_map=False, use_cost_volume=False), 1.4723)
+        vh1 = sample["vh_n1"].float() * base["mask"].unsqueeze(1)
+        rows["vh"].add(vh1, sample["vh_n2"].float(), base)
+    return {name: {**row.summary(), "seconds_per_scene": row.seconds / max(n, 1)} for name, row in rows.items()}
+
+
+def markdown_table(results: dict[str, dict]) -> str:
+    lines = ["| | N1 median (°) | N1 mean (°) | N2 median (°) | N2 mean (°) | render error (×1e-2) |",
+             "|---|---|---|---|---|---|"]
+    for name, r in results.items():
+        lines.append(f"| {name} | {r['n1_median']:.2f} | {r['n1_mean']:.2f} | {r['n2_median']:.2f} | "
+                     f"{r['n2_mean']:.2f} | {100 * r['render_error']:.2f} |")
+    return "\n".join(lines)
