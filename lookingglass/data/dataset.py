@@ -39,7 +39,7 @@ serves it at (cpu 128 x 256, paper 256 x 512), so image and E agree exactly.
 Determinism: scene i is a function of (seed, split, i) alone -- its seeds come from
 `np.random.SeedSequence(seed, spawn_key=(split code, i))` -- and every scene is made with one
 torch thread and one Embree thread, so any order, worker count or sharding writes identical
-arrays. train and test draw from disjoint seed streams, and the natural environment maps are
+arrays (on one software stack: another Embree or torch build may round differently). train and test draw from disjoint seed streams, and the natural environment maps are
 split too: `DatasetConfig.test_envmaps` (2 of the 9) light only test scenes, the other 7 only
 training scenes (procedural maps come from the split's own seed stream).
 """
@@ -139,7 +139,10 @@ def parse_shard(text: str) -> tuple[int, int]:
     return k, n
 
 
-def _check_args(scenes: int, views: int, split: str, shard: tuple[int, int], workers: int | None) -> None:
+def _check_args(scenes: int, views: int, split: str, shard: tuple[int, int], workers: int | None,
+                seed: int = 0) -> None:
+    if seed < 0:
+        raise LookingGlassError(f"--seed must be >= 0, got {seed}")
     if scenes < 1:
         raise LookingGlassError(f"--scenes must be at least 1, got {scenes}")
     if views not in RIG_VIEWS:
@@ -397,8 +400,11 @@ def _check_envmaps(config: DatasetConfig, split: str, folder) -> None:
 
 
 def _worker_init() -> None:
+    import signal
+
     import torch
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the parent stops the pool, quietly
     torch.set_num_threads(1)
     warnings.simplefilter("ignore")  # recorded per scene in meta.json instead
 
@@ -421,7 +427,7 @@ def generate_dataset(out, scenes: int, views: int = 10, split: str = "train", se
     from ..progress import Reporter
 
     config = config or DatasetConfig()
-    _check_args(scenes, views, split, shard, workers)
+    _check_args(scenes, views, split, shard, workers, seed)
     if envmap_folder is None:
         from .envmaps import default_envmap_folder
 
