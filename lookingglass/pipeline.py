@@ -21,9 +21,10 @@ from .config import PipelineConfig, config_to_dict, resolve_device
 from .errors import LookingGlassError
 from .fileio import write_atomic, write_json
 from .hull import carve_visual_hull
+from .normals.stage import run_normal_stage, shipped_weights
 from .progress import Reporter, peak_memory_mb
 
-STAGES = ("visual_hull",)
+STAGES = ("visual_hull", "normals")
 
 
 def versions() -> dict:
@@ -81,6 +82,18 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
             write_mesh(out_dir / "visual_hull.ply", hull.mesh)
             rec.update(mesh=mesh_summary(hull.mesh), voxel_size=float(hull.voxel_size),
                        timings={k: round(float(v), 3) for k, v in hull.timings.items()})
+
+        weights, trained_views = (Path(config.normals.weights), capture.num_views) if config.normals.weights \
+            else shipped_weights(capture.num_views)
+        if weights is None:
+            reporter.warn("no trained normal-network weights ship with this build: stopping after the visual hull")
+        else:
+            with reporter.stage("normals", "normals (network + latent optimization)") as rec:
+                rec.update(run_normal_stage(capture.images, capture.masks, capture.envmap, capture.cameras,
+                                            hull.mesh, capture.ior, out_dir, config.normals, weights))
+                rec["trained_views"] = trained_views
+                if trained_views != capture.num_views:
+                    rec["note"] = f"{capture.num_views} views: using the weights trained for {trained_views}"
 
         best, best_stage = hull.mesh, "visual_hull"
         write_mesh(out_dir / "mesh.ply", best)

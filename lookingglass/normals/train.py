@@ -22,7 +22,7 @@ import torch.distributed as dist
 from safetensors.torch import load_file, save_file
 from torch import Tensor
 
-from ..config import config_from_dict
+from ..configio import config_from_dict
 from ..errors import LookingGlassError
 from ..fileio import write_atomic, write_json
 from ..physics.camera import Cameras
