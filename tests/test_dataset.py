@@ -104,7 +104,8 @@ def test_resume_skips_finished_and_redoes_unfinished(made, tmp_path):
     with pytest.raises(LookingGlassError, match="seed"):
         generate_dataset(root, SCENES, views=VIEWS, split="train", seed=SEED + 1, config=TINY)
     with pytest.raises(LookingGlassError, match="width"):
-        generate_dataset(root, SCENES, views=VIEWS, split="train", seed=SEED, config=dataclasses.replace(TINY, width=80))
+        generate_dataset(root, SCENES, views=VIEWS, split="train", seed=SEED,
+                         config=dataclasses.replace(TINY, width=80))
 
 
 def test_shards_and_workers_reproduce_the_full_run(made, tmp_path):
@@ -123,7 +124,8 @@ def test_splits_use_disjoint_seeds_and_envmaps(shared_envmaps):
     from lookingglass.data.dataset import split_envmap_names
 
     tr, te = split_envmap_names(TINY, "train"), split_envmap_names(TINY, "test")
-    assert sorted(te) == sorted(TINY.test_envmaps) and not set(tr) & set(te) and len(tr) + len(te) == len(shared_envmaps)
+    assert sorted(te) == sorted(TINY.test_envmaps) and not set(tr) & set(te)
+    assert len(tr) + len(te) == len(shared_envmaps)
 
 
 def _camera_rays(meta, pixels):
@@ -159,7 +161,8 @@ def _smooth_hit(mesh, origins, dirs):
 
 
 def _angle_deg(a, b):
-    return np.degrees(np.arccos(np.clip((a * b).sum(-1) / np.linalg.norm(a, axis=-1) / np.linalg.norm(b, axis=-1), -1, 1)))
+    cos = (a * b).sum(-1) / np.linalg.norm(a, axis=-1) / np.linalg.norm(b, axis=-1)
+    return np.degrees(np.arccos(np.clip(cos, -1, 1)))
 
 
 def test_gt_normals_match_an_independent_ray_cast(made):
@@ -235,7 +238,8 @@ def test_dataset_normalization_and_envmap_factor(made):
     assert np.allclose(item["origin"].numpy(), np.asarray(meta["cameras"]["origin"]), atol=1e-6)
 
     # augmentation: the target mean is drawn from U[0.4, 0.6], reproducibly for a seed
-    a, b = TransparentSceneDataset(made, "train", augment=True, seed=5), TransparentSceneDataset(made, "train", augment=True, seed=5)
+    a = TransparentSceneDataset(made, "train", augment=True, seed=5)
+    b = TransparentSceneDataset(made, "train", augment=True, seed=5)
     draws = [float(a[1]["target_mean"]) for _ in range(4)]
     assert draws == [float(b[1]["target_mean"]) for _ in range(4)]
     assert len(set(draws)) == 4 and all(0.4 <= m <= 0.6 for m in draws)

@@ -39,9 +39,12 @@ serves it at (cpu 128 x 256, paper 256 x 512), so image and E agree exactly.
 Determinism: scene i is a function of (seed, split, i) alone -- its seeds come from
 `np.random.SeedSequence(seed, spawn_key=(split code, i))` -- and every scene is made with one
 torch thread and one Embree thread, so any order, worker count or sharding writes identical
-arrays (on one software stack: another Embree or torch build may round differently). train and test draw from disjoint seed streams, and the natural environment maps are
-split too: `DatasetConfig.test_envmaps` (2 of the 9) light only test scenes, the other 7 only
-training scenes (procedural maps come from the split's own seed stream).
+arrays (on one software stack: another Embree or torch build may round differently).
+
+train and test draw from disjoint seed streams, and the natural environment maps are split too:
+`DatasetConfig.test_envmaps` (2 of the 9: forest_slope, potsdamer_platz) light only test scenes,
+the other 7 only training scenes, as the paper keeps its test maps apart; procedural maps (half
+of the scenes, `p_procedural`) come from each split's own seed stream.
 """
 
 from __future__ import annotations
@@ -56,12 +59,16 @@ import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import LookingGlassError
 from ..hull import HullConfig
 from .shapes import ShapeConfig
+
+if TYPE_CHECKING:
+    import trimesh
 
 FORMAT_VERSION = 1
 SPLITS = {"train": 0, "test": 1}
@@ -205,8 +212,8 @@ class SceneData:
     """A generated scene in memory: `maps` (MAP_KEYS, the stored dtypes), the meshes, meta."""
 
     maps: dict[str, np.ndarray]
-    mesh: "object"
-    hull: "object"
+    mesh: "trimesh.Trimesh"
+    hull: "trimesh.Trimesh"
     meta: dict
 
 
@@ -238,8 +245,8 @@ def make_scene(index: int, split: str, seed: int, views: int, config: DatasetCon
     from ..threads import torch_threads
     from .envmaps import EnvmapSampler
     from .rigs import paper_rig_params
-    from .shapes import random_shape, shape_stats
     from ..hull import carve_visual_hull
+    from .shapes import random_shape, shape_stats
 
     seeds = scene_seeds(seed, split, index, attempt)
     timings: dict[str, float] = {}
@@ -311,8 +318,9 @@ def write_scene(scene_dir: Path, data: SceneData) -> dict:
     scene_dir.mkdir(parents=True, exist_ok=True)
     write_atomic(scene_dir / "maps.npz", lambda p: np.savez_compressed(p, **data.maps))
     write_atomic(scene_dir / "mesh.ply", lambda p: data.mesh.export(p, file_type="ply", vertex_normal=False))
-    write_atomic(scene_dir / "hull.npz", lambda p: np.savez_compressed(
-        p, vertices=np.asarray(data.hull.vertices, dtype=np.float32), faces=np.asarray(data.hull.faces, dtype=np.int32)))
+    hull_v = np.asarray(data.hull.vertices, dtype=np.float32)
+    hull_f = np.asarray(data.hull.faces, dtype=np.int32)
+    write_atomic(scene_dir / "hull.npz", lambda p: np.savez_compressed(p, vertices=hull_v, faces=hull_f))
     meta = dict(data.meta)
     meta["timings"] = {**meta["timings"], "write": round(time.perf_counter() - t0, 4)}
     meta["files"] = {n: (scene_dir / n).stat().st_size for n in SCENE_FILES[:-1]}
