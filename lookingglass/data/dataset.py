@@ -127,7 +127,7 @@ class DatasetConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> "DatasetConfig":
-        from ..config import config_from_dict
+        from ..configio import config_from_dict
 
         return config_from_dict(cls, data, where="dataset config")
 
