@@ -457,9 +457,22 @@ def _ls3_loop(vertices: np.ndarray, faces: np.ndarray, iterations: int,
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(vertices, np.float64),
                                face_matrix=np.ascontiguousarray(faces, np.int32)))
-    ms.meshing_surface_subdivision_ls3_loop(
-        loopweight="Loop", iterations=int(iterations),
-        threshold=pymeshlab.PercentageValue(100.0 * threshold))
+
+    def subdivide() -> None:
+        ms.meshing_surface_subdivision_ls3_loop(
+            loopweight="Loop", iterations=int(iterations), threshold=pymeshlab.PercentageValue(100.0 * threshold))
+
+    try:
+        subdivide()
+    except pymeshlab.PyMeshLabException:
+        # Marching cubes can pinch two sheets of the surface along an edge or at a vertex where the
+        # hull is one voxel thin; LS3 needs a 2-manifold. Split the pinches and close what opens.
+        ms.meshing_remove_duplicate_vertices()
+        ms.meshing_remove_null_faces()
+        ms.meshing_repair_non_manifold_edges(method="Split Vertices")
+        ms.meshing_repair_non_manifold_vertices()
+        ms.meshing_close_holes()
+        subdivide()
     m = ms.current_mesh()
     return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
 

@@ -65,3 +65,16 @@ def test_torchrun_two_processes(tiny_dataset, tmp_path):
     log = [json.loads(line) for line in (tmp_path / "ddp" / "metrics.jsonl").read_text().splitlines()]
     assert log[0]["processes"] == 2 and log[0]["step"] == 2  # 4 scenes shared by 2 processes
     assert (tmp_path / "ddp" / "weights.safetensors").exists()
+
+
+def test_random_view_subsets(tiny_dataset, tmp_path):
+    from lookingglass.normals.train import select_views
+
+    ds = TransparentSceneDataset(tiny_dataset, "train")
+    sample = ds[0]
+    sub = select_views(sample, 2, torch.Generator().manual_seed(0))
+    assert sub["image"].shape[0] == 2 and sub["origin"].shape[0] == 2 and sub["envmap"].shape == sample["envmap"].shape
+    cfg = _config(epochs=1)
+    cfg.views_per_step = 2
+    metrics = train_normals(ds, tmp_path / "sub", cfg)
+    assert metrics["step"] == 4 and metrics["loss"] > 0
