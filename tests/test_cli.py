@@ -82,3 +82,18 @@ def test_empty_mask_is_reported_with_its_file(rendered_scene, tmp_path):
     write_mask(scene / "masks" / "03.png", np.zeros((90, 120), bool))
     proc = run("reconstruct", scene, "--out", tmp_path / "o", ok=False)
     assert proc.returncode == 2 and "03.png" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_render_with_cameras_of_a_scene(rendered_scene, tmp_path):
+    """--scene reuses a capture's cameras; --size rescales the images, not the geometry."""
+    root = rendered_scene
+    run("render", root / "gt.ply", "--envmap", root / "env.hdr", "--scene", root / "scene" / "scene.json",
+        "--size", 60, 45, "--out", tmp_path / "again")
+    from lookingglass.capture.scene import load_capture
+
+    first, again = load_capture(root / "scene"), load_capture(tmp_path / "again")
+    assert again.images.shape == (10, 45, 60, 3)
+    np.testing.assert_allclose(again.cameras.origin.numpy(), first.cameras.origin.numpy(), atol=1e-5)
+    # Same silhouettes at half the size (area coverage of the full-size masks, up to edge pixels).
+    half = first.masks.reshape(10, 45, 2, 60, 2).mean(axis=(2, 4)) >= 0.5
+    assert (half != again.masks).mean() < 0.02
