@@ -72,3 +72,43 @@ def test_cost_volume_zero_error_at_truth():
     assert cv[0, 5, 6].abs().mean() > 1e-3  # a tilted pair renders differently
     x = network_inputs(image, mask, n, -n, cv[:, 0, 6:7].permute(0, 2, 3, 1).expand(-1, -1, -1, 3), mask)
     assert x.shape == (1, 15, 12, 16)
+
+
+def test_cost_volume_pairs_match_the_layer():
+    """The cost volume shares the first interface across N2 choices: every pair must still equal
+    a full rendering-layer pass on that pair of normals."""
+    from lookingglass.normals.render_layer import error_map, render_layer
+
+    g = torch.Generator().manual_seed(3)
+    cams = Cameras.look_at([[0.3, 0.2, 3.0], [-2.0, 1.0, 2.0]], [[0, 0, 0]] * 2, [[0, 1, 0]] * 2, 50.0, 16, 12)
+    env = EnvironmentMap(torch.rand(16, 32, 3, generator=g))
+    n1 = torch.nn.functional.normalize(torch.randn(2, 12, 16, 3, generator=g) * 0.3 + torch.tensor([0, 0, 1.0]), dim=-1)
+    n2 = torch.nn.functional.normalize(torch.randn(2, 12, 16, 3, generator=g) * 0.3 - torch.tensor([0, 0, 1.0]), dim=-1)
+    image = torch.rand(2, 12, 16, 3, generator=g)
+    mask = torch.rand(2, 12, 16, generator=g) > 0.3
+    cv = build_cost_volume(env, image, mask, n1, n2, cams, 15.0)
+    n1s, n2s = sample_cone(n1, 15.0), sample_cone(n2, 15.0)
+    for a, b in [(0, 3), (2, 1), (3, 3)]:
+        out = render_layer(env, n1s[a], n2s[b], cams)
+        expected = error_map(image, out.image, mask).mean(-1)
+        torch.testing.assert_close(cv[:, 4 * a + b, 6], expected, atol=1e-6, rtol=0)
+        torch.testing.assert_close(cv[:, 4 * a + b, 7], (out.tir & mask).float())
+
+
+def test_residual_net_starts_at_the_hull_normals():
+    """The residual switch (ours): an untrained net returns Ñ1, Ñ2 exactly, and still learns."""
+    cfg = cpu_config(width=64, height=48)
+    assert cfg.residual
+    net = NormalNet(cfg)
+    g = torch.Generator().manual_seed(0)
+    vh1 = torch.nn.functional.normalize(torch.randn(2, 48, 64, 3, generator=g), dim=-1)
+    vh2 = torch.nn.functional.normalize(torch.randn(2, 48, 64, 3, generator=g), dim=-1)
+    mask = torch.ones(2, 48, 64, dtype=torch.bool)
+    x = network_inputs(torch.rand(2, 48, 64, 3, generator=g), mask, vh1, vh2, torch.rand(2, 48, 64, 3), mask)
+    n1, n2 = net(x, torch.randn(2, 16, 8, 48, 64, generator=g))
+    torch.testing.assert_close(n1, vh1.permute(0, 3, 1, 2), atol=1e-6, rtol=0)
+    torch.testing.assert_close(n2, vh2.permute(0, 3, 1, 2), atol=1e-6, rtol=0)
+    (n1[:, 0].sum() + n2[:, 2].sum()).backward()
+    assert net.decoder[-1].weight.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="hull normals"):
+        net.decode(net.encode(x, torch.zeros(2, 16, 8, 48, 64)))

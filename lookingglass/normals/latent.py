@@ -44,14 +44,14 @@ def optimize_latent(net: NormalNet, inputs: Tensor, cost_volume: Tensor | None, 
         p.requires_grad_(False)
     with torch.no_grad():
         latent0 = net.encode(inputs, cost_volume)
-        n1_init, _ = net.decode(latent0)
+        n1_init, _ = net.decode(latent0, inputs)
     latent = latent0.clone().requires_grad_(True)
     opt = torch.optim.Adam([latent], lr=config.lr)
     dirs = cameras.pixel_rays()[1].to(image)
     m = mask.unsqueeze(1).to(image.dtype)
     history = []
     for step in range(config.iterations_n2 + config.iterations_both):
-        n1, n2 = net.decode(latent)
+        n1, n2 = net.decode(latent, inputs)
         loss = masked_render_loss(envmap, n1, n2, cameras, image, mask, view_dirs=dirs)
         history.append(float(loss.detach()))
         if step < config.iterations_n2:
@@ -60,6 +60,6 @@ def optimize_latent(net: NormalNet, inputs: Tensor, cost_volume: Tensor | None, 
         loss.backward()
         opt.step()
     with torch.no_grad():
-        n1, n2 = net.decode(latent)
+        n1, n2 = net.decode(latent, inputs)
         history.append(float(masked_render_loss(envmap, n1, n2, cameras, image, mask, view_dirs=dirs)))
     return n1, n2, history

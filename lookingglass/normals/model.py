@@ -17,7 +17,7 @@ from torch import Tensor, nn
 
 from ..physics.camera import Cameras
 from ..physics.environment import EnvironmentMap
-from .render_layer import error_map, render_layer
+from .render_layer import error_map, first_interface, second_interface
 
 # The supplement's cost-volume angles: theta = 0, t, t, t and phi = 0, 0, 120, 240 degrees, with
 # t chosen from the visual hull's normal error for each view count.
@@ -38,6 +38,10 @@ class NormalNetConfig:
     num_views: int = 10
     cost_volume_k: int = 4
     cost_volume_theta_deg: float | None = None  # None: the supplement's value for num_views
+    # Ours, not the paper's: predict a correction to the hull's normals, normalize(Ñ + tanh(out)),
+    # with the last layer zero-initialized, so an untrained net starts at the hull's normals and
+    # training spends its steps on corrections (the paper's net regresses normals from scratch).
+    residual: bool = False
 
     @property
     def in_channels(self) -> int:
@@ -57,7 +61,7 @@ def paper_config(**kw) -> NormalNetConfig:
 
 def cpu_config(**kw) -> NormalNetConfig:
     """Narrower and at half the paper's resolution: trains in about an hour on 2 CPU cores."""
-    base = dict(width=128, height=96, enc_channels=(32, 64, 128), fnet_channels=32, groups=8)
+    base = dict(width=128, height=96, enc_channels=(32, 64, 128), fnet_channels=32, groups=8, residual=True)
     base.update(kw)
     return NormalNetConfig(**base)
 
@@ -101,6 +105,9 @@ class NormalNet(nn.Module):
             _conv(c2, c2, 3, 1, g), _conv(c2, c1 * 2, 3, 1, g), up(),
             _conv(c1 * 2, c1 * 2, 3, 1, g), _conv(c1 * 2, c1, 3, 1, g), up(),
             nn.Conv2d(c1, 6, 3, 1, 1))
+        if cfg.residual:
+            nn.init.zeros_(self.decoder[-1].weight)
+            nn.init.zeros_(self.decoder[-1].bias)
         if cfg.use_cost_volume:
             self.fnet = FNet(cfg)
             k2 = cfg.cost_volume_k ** 2
@@ -120,19 +127,30 @@ class NormalNet(nn.Module):
             x = torch.cat([x, (feats * self.pooling_weights().view(1, K2, 1, 1, 1)).sum(1)], dim=1)
         return self.enc2(x)
 
-    def decode(self, latent: Tensor) -> tuple[Tensor, Tensor]:
+    def decode(self, latent: Tensor, inputs: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """latent -> unit (n1, n2), each (B, 3, H, W). A residual net adds its output to the hull
+        normals, read from `inputs` (the tensor `encode` was given)."""
         out = torch.tanh(self.decoder(latent))
-        return (torch.nn.functional.normalize(out[:, :3], dim=1, eps=1e-6),
-                torch.nn.functional.normalize(out[:, 3:], dim=1, eps=1e-6))
+        n1, n2 = out[:, :3], out[:, 3:]
+        if self.cfg.residual:
+            if inputs is None:
+                raise ValueError("a residual network decodes relative to the hull normals; pass the inputs")
+            n1, n2 = n1 + inputs[:, HULL_N1_CHANNELS], n2 + inputs[:, HULL_N2_CHANNELS]
+        return (torch.nn.functional.normalize(n1, dim=1, eps=1e-6),
+                torch.nn.functional.normalize(n2, dim=1, eps=1e-6))
 
     def forward(self, inputs: Tensor, cost_volume: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        return self.decode(self.encode(inputs, cost_volume))
+        return self.decode(self.encode(inputs, cost_volume), inputs)
 
 
 # ---- inputs -------------------------------------------------------------------------------------
 def to_channels(x: Tensor) -> Tensor:
     """(V, H, W, C) -> (V, C, H, W)."""
     return x.permute(0, 3, 1, 2)
+
+
+# Where `network_inputs` puts the (masked) hull normals Ñ1, Ñ2.
+HULL_N1_CHANNELS, HULL_N2_CHANNELS = slice(7, 10), slice(10, 13)
 
 
 def network_inputs(image: Tensor, mask: Tensor, vh_n1: Tensor, vh_n2: Tensor, vh_error: Tensor | None,
@@ -182,8 +200,9 @@ def build_cost_volume(envmap: EnvironmentMap, image: Tensor, mask: Tensor, vh_n1
     m = mask.unsqueeze(-1).to(image.dtype)
     pairs = []
     for a in range(k):
+        first = first_interface(envmap, n1s[a], cameras, ior, ext_ior, view_dirs=dirs)  # shared by K N2s
         for b in range(k):
-            out = render_layer(envmap, n1s[a], n2s[b], cameras, ior, ext_ior, view_dirs=dirs)
+            out = second_interface(envmap, first, n2s[b], cameras, ior, ext_ior)
             err = error_map(image, out.image, mask).mean(-1, keepdim=True)
             tir = out.tir.unsqueeze(-1).to(image.dtype) * m
             pairs.append(torch.cat([n1s[a] * m, n2s[b] * m, err, tir], dim=-1))

@@ -33,6 +33,44 @@ class LayerOutput:
         return self.reflected + self.transmitted
 
 
+@dataclass
+class FirstInterface:
+    """The part of the layer that depends on N1 alone: world view directions `d` and refracted
+    directions `t1` (V, H, W, 3), Fresnel reflectance `f1` and TIR `tir1` (V, H, W), and the
+    reflected radiance (V, H, W, 3). The cost volume reuses one of these for K choices of N2."""
+
+    d: Tensor
+    t1: Tensor
+    f1: Tensor
+    tir1: Tensor
+    reflected: Tensor
+
+
+def first_interface(envmap: EnvironmentMap, normal1: Tensor, cameras: Cameras, ior: float = IOR_GLASS,
+                    ext_ior: float = IOR_AIR, view_dirs: Tensor | None = None) -> FirstInterface:
+    """Reflect and refract the camera rays at N1 (V, H, W, 3), camera frame."""
+    d = cameras.pixel_rays()[1].to(normal1) if view_dirs is None else view_dirs
+    n1 = cameras.camera_to_world(torch.nn.functional.normalize(normal1, dim=-1))
+    refl_dir, t1, f1, tir1 = interface(d, n1, ext_ior / ior)
+    return FirstInterface(d, t1, f1, tir1, f1.unsqueeze(-1) * envmap.lookup(refl_dir))
+
+
+def second_interface(envmap: EnvironmentMap, first: FirstInterface, normal2: Tensor, cameras: Cameras,
+                     ior: float = IOR_GLASS, ext_ior: float = IOR_AIR) -> LayerOutput:
+    """Leave the glass at N2 (V, H, W, 3), camera frame, after `first`."""
+    n2 = cameras.camera_to_world(torch.nn.functional.normalize(normal2, dim=-1))
+    # Leaving the glass through the second interface: the normal facing the ray is -n2.
+    # A refracted ray that does not point out through N2 cannot leave there either.
+    leaves = (first.t1 * n2).sum(-1) > 0
+    _, t2, f2, tir2 = interface(first.t1, n2, ior / ext_ior)
+    tir = first.tir1 | tir2 | ~leaves
+    transmittance = ((1 - first.f1) * (1 - f2)).unsqueeze(-1)
+    safe_t2 = torch.where(tir.unsqueeze(-1), first.d, t2)  # any unit vector: the term is masked out
+    transmitted = torch.where(tir.unsqueeze(-1), torch.zeros_like(first.reflected),
+                              transmittance * envmap.lookup(safe_t2))
+    return LayerOutput(first.reflected, transmitted, tir)
+
+
 def render_layer(envmap: EnvironmentMap, normal1: Tensor, normal2: Tensor, cameras: Cameras,
                  ior: float = IOR_GLASS, ext_ior: float = IOR_AIR,
                  view_dirs: Tensor | None = None) -> LayerOutput:
@@ -43,20 +81,8 @@ def render_layer(envmap: EnvironmentMap, normal1: Tensor, normal2: Tensor, camer
     cameras: the V views, at the normals' resolution (pixel-centre rays), or pass `view_dirs`
     (V, H, W, 3) world ray directions directly (e.g. cached). Returns `LayerOutput`.
     """
-    d = cameras.pixel_rays()[1].to(normal1) if view_dirs is None else view_dirs
-    n1 = cameras.camera_to_world(torch.nn.functional.normalize(normal1, dim=-1))
-    n2 = cameras.camera_to_world(torch.nn.functional.normalize(normal2, dim=-1))
-    refl_dir, t1, f1, tir1 = interface(d, n1, ext_ior / ior)
-    # Leaving the glass through the second interface: the normal facing the ray is -n2.
-    # A refracted ray that does not point out through N2 cannot leave there either.
-    leaves = (t1 * n2).sum(-1) > 0
-    _, t2, f2, tir2 = interface(t1, n2, ior / ext_ior)
-    tir = tir1 | tir2 | ~leaves
-    reflected = f1.unsqueeze(-1) * envmap.lookup(refl_dir)
-    transmittance = ((1 - f1) * (1 - f2)).unsqueeze(-1)
-    safe_t2 = torch.where(tir.unsqueeze(-1), d, t2)  # any unit vector: the term is masked out
-    transmitted = torch.where(tir.unsqueeze(-1), torch.zeros_like(reflected), transmittance * envmap.lookup(safe_t2))
-    return LayerOutput(reflected, transmitted, tir)
+    first = first_interface(envmap, normal1, cameras, ior, ext_ior, view_dirs)
+    return second_interface(envmap, first, normal2, cameras, ior, ext_ior)
 
 
 def comparable(rendered: Tensor) -> Tensor:

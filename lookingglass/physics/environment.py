@@ -36,7 +36,9 @@ class EnvironmentMap:
     def __init__(self, radiance: Tensor):
         if radiance.dim() != 3 or radiance.shape[-1] != 3:
             raise ValueError(f"environment map must be (H, W, 3), got {tuple(radiance.shape)}")
-        self.radiance = radiance
+        # Contiguous once here: lookups flatten the map, and a permuted (C, H, W) view would be
+        # copied (slowly, strided) on every lookup.
+        self.radiance = radiance.contiguous()
 
     @property
     def height(self) -> int:
