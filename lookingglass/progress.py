@@ -51,10 +51,27 @@ class Reporter:
         if self.quiet:
             yield from items
             return
+        total = total if total is not None else len(items)  # type: ignore[arg-type]
+        if not self.console.is_terminal:  # a log file or a batch job: plain lines, not a live bar
+            yield from self._track_lines(items, total, description)
+            return
         columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                    TimeElapsedColumn(), TimeRemainingColumn())
         with Progress(*columns, console=self.console, transient=False) as bar:
-            task = bar.add_task(description, total=total if total is not None else len(items))  # type: ignore[arg-type]
+            task = bar.add_task(description, total=total)
             for item in items:
                 yield item
                 bar.advance(task)
+
+    def _track_lines(self, items: Iterable[T], total: int, description: str,
+                     every_seconds: float = 30.0) -> Iterator[T]:
+        """One line at every 10% and at least every `every_seconds`, with elapsed time and ETA."""
+        start = last = time.perf_counter()
+        step = max(1, total // 10)
+        for done, item in enumerate(items, 1):
+            yield item
+            now = time.perf_counter()
+            if done == total or done % step == 0 or now - last >= every_seconds:
+                last = now
+                eta = (now - start) / done * (total - done)
+                self.console.print(f"{description}: {done}/{total} ({now - start:.0f} s, ~{eta:.0f} s left)")
