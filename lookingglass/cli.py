@@ -24,16 +24,20 @@ def reconstruct(
     preset: str = typer.Option("cpu", help="Configuration preset: cpu or paper."),
     hull_resolution: Optional[int] = typer.Option(None, help="Voxels along the longest side of the hull box."),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
+    stop_after: str = typer.Option("surface", help="Last stage to run: visual_hull, normals or surface."),
+    weights: Optional[Path] = typer.Option(None, help="Normal-network weights (default: the shipped ones)."),
     force: bool = typer.Option(False, "--force", help="Overwrite a non-empty output folder."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
-    """Reconstruct the object's surface; writes mesh.ply, visual_hull.ply and report.json."""
+    """Reconstruct the object's surface; writes mesh.ply, visual_hull.ply, points.ply, normals/ and report.json."""
     from .config import preset as make_preset
     from .pipeline import reconstruct as run
     from .progress import Reporter
 
     config = make_preset(preset)
-    config.device = device
+    config.device, config.stop_after = device, stop_after
+    if weights is not None:
+        config.normals.weights = str(weights)
     if hull_resolution is not None:
         if not 16 <= hull_resolution <= 1024:
             raise LookingGlassError(f"--hull-resolution must be in [16, 1024], got {hull_resolution}")
@@ -247,6 +251,42 @@ def eval_normals(
     dataset = TransparentSceneDataset(data, "test", views=views)
     results = evaluate_normals(dataset, paths, latent, max_scenes, Reporter(quiet=quiet))
     print(markdown_table(results))
+
+
+@app.command("eval-shapes")
+def eval_shapes(
+    data: Path = typer.Option(..., "--data", help="Dataset folder with a test split (DATA/test)."),
+    weights: Optional[Path] = typer.Option(None, help="Normal-network weights (default: the shipped ones)."),
+    views: int = typer.Option(10, help="Views per scene."),
+    strategies: str = typer.Option("RE,NE,AV", help="Feature-mapping strategies, comma-separated."),
+    latent_iterations: int = typer.Option(50, help="Latent-optimization steps per phase (0: skip)."),
+    max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Also write rows and per-scene metrics as JSON."),
+    quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
+) -> None:
+    """Print the paper's Table 2/3 (CD, CDN-mean, CDN-med, Metro) for the hull and the surfaces made
+    from normal predictions, as markdown."""
+    from .data.torch_dataset import TransparentSceneDataset
+    from .fileio import write_json
+    from .normals.latent import LatentOptConfig
+    from .normals.stage import shipped_weights
+    from .points.evaluate import evaluate_shapes, markdown_table
+    from .points.features import STRATEGIES
+    from .progress import Reporter
+
+    chosen = tuple(s.strip().upper() for s in strategies.split(",") if s.strip())
+    if not chosen or any(s not in STRATEGIES for s in chosen):
+        raise LookingGlassError(f"--strategies takes a comma-separated subset of {', '.join(STRATEGIES)}, "
+                                f"got {strategies!r}")
+    weights = weights or shipped_weights(views)[0]
+    if weights is None:
+        raise LookingGlassError(f"no weights ship for {views} views; pass --weights")
+    latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
+    dataset = TransparentSceneDataset(data, "test", views=views)
+    result = evaluate_shapes(dataset, weights, chosen, latent, max_scenes=max_scenes, reporter=Reporter(quiet=quiet))
+    if json_out is not None:
+        write_json(json_out, result)
+    print(markdown_table(result["rows"]))
 
 
 def main() -> None:

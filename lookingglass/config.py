@@ -13,6 +13,7 @@ from .configio import config_from_dict, config_to_dict  # noqa: F401 (re-exporte
 from .errors import LookingGlassError
 from .hull import HullConfig
 from .normals.stage import NormalStageConfig
+from .points.stage import SurfaceConfig
 
 
 @dataclass
@@ -21,6 +22,8 @@ class PipelineConfig:
 
     hull: HullConfig = field(default_factory=HullConfig)
     normals: NormalStageConfig = field(default_factory=NormalStageConfig)
+    surface: SurfaceConfig = field(default_factory=SurfaceConfig)
+    stop_after: str = "surface"  # visual_hull, normals or surface
     device: str = "auto"
     seed: int = 0
 

@@ -1,8 +1,11 @@
-"""`reconstruct`: run every stage that exists on a scene folder and write the results.
+"""`reconstruct`: run the pipeline's stages on a scene folder and write the results.
 
-Stages today: visual hull. Outputs (all in the capture's own frame, written atomically):
+Stages: visual_hull -> normals (network + latent optimization; needs weights) -> surface (hull
+points with the mapped normals, screened Poisson). Outputs (capture frame, written atomically):
   OUT/visual_hull.ply  the carved and smoothed hull
-  OUT/mesh.ply         the best surface the pipeline produced (today: the hull)
+  OUT/normals/         per-view normal maps and pictures (normals stage)
+  OUT/points.ply       oriented points the surface was made from (surface stage)
+  OUT/mesh.ply         the surface of the last stage that ran (the hull when only it ran)
   OUT/report.json      stages run, per-stage seconds and peak memory, sizes, versions, config
 """
 
@@ -13,6 +16,7 @@ import time
 import warnings
 from pathlib import Path
 
+import numpy as np
 import trimesh
 
 from . import __version__
@@ -22,9 +26,10 @@ from .errors import LookingGlassError
 from .fileio import write_atomic, write_json
 from .hull import carve_visual_hull
 from .normals.stage import run_normal_stage, shipped_weights
+from .points.stage import surface_from_normals
 from .progress import Reporter, peak_memory_mb
 
-STAGES = ("visual_hull", "normals")
+STAGES = ("visual_hull", "normals", "surface")
 
 
 def versions() -> dict:
@@ -59,10 +64,25 @@ def mesh_summary(mesh: trimesh.Trimesh) -> dict:
             "bounds": mesh.bounds.tolist()}
 
 
+def write_points(path: Path, points: np.ndarray, normals: np.ndarray) -> Path:
+    """Binary PLY point cloud with per-point normals (x y z nx ny nz, float32), atomically.
+    points, normals: (N, 3)."""
+    names = ("x", "y", "z", "nx", "ny", "nz")
+    records = np.empty(len(points), dtype=[(k, "<f4") for k in names])
+    for i, k in enumerate("xyz"):
+        records[k], records["n" + k] = points[:, i], normals[:, i]
+    header = ("ply\nformat binary_little_endian 1.0\n" f"element vertex {len(points)}\n"
+              + "".join(f"property float {k}\n" for k in names) + "end_header\n")
+    return write_atomic(path, lambda tmp: Path(tmp).write_bytes(header.encode("ascii") + records.tobytes()))
+
+
 def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = None, force: bool = False,
                 reporter: Reporter | None = None) -> dict:
     """Reconstruct the object in the scene folder `scene_dir`; returns the report dict."""
     config = config or PipelineConfig()
+    if config.stop_after not in STAGES:
+        raise LookingGlassError(f"--stop-after must be one of {', '.join(STAGES)}, got {config.stop_after!r}")
+    wanted = STAGES[:STAGES.index(config.stop_after) + 1]
     reporter = reporter or Reporter(quiet=True)
     scene_dir, out_dir = Path(scene_dir), Path(out_dir)
     start = time.perf_counter()
@@ -83,19 +103,32 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
             rec.update(mesh=mesh_summary(hull.mesh), voxel_size=float(hull.voxel_size),
                        timings={k: round(float(v), 3) for k, v in hull.timings.items()})
 
+        best, best_stage = hull.mesh, "visual_hull"
         weights, trained_views = (Path(config.normals.weights), capture.num_views) if config.normals.weights \
             else shipped_weights(capture.num_views)
-        if weights is None:
+        normals = None
+        if "normals" not in wanted:
+            pass
+        elif weights is None:
             reporter.warn("no trained normal-network weights ship with this build: stopping after the visual hull")
         else:
             with reporter.stage("normals", "normals (network + latent optimization)") as rec:
-                rec.update(run_normal_stage(capture.images, capture.masks, capture.envmap, capture.cameras,
-                                            hull.mesh, capture.ior, out_dir, config.normals, weights))
+                normals = run_normal_stage(capture.images, capture.masks, capture.envmap, capture.cameras,
+                                           hull.mesh, capture.ior, out_dir, config.normals, weights)
+                rec.update(normals.report)
                 rec["trained_views"] = trained_views
                 if trained_views != capture.num_views:
                     rec["note"] = f"{capture.num_views} views: using the weights trained for {trained_views}"
 
-        best, best_stage = hull.mesh, "visual_hull"
+        if normals is not None and "surface" in wanted:
+            with reporter.stage("surface", "surface (feature mapping + Poisson)") as rec:
+                mesh, oriented = surface_from_normals(hull.mesh, hull.center, hull.scale, normals.cameras,
+                                                      normals.n1, normals.error, normals.tir, normals.mask,
+                                                      config.surface)
+                write_points(out_dir / "points.ply", oriented.points, oriented.normals)
+                rec.update(mesh=mesh_summary(mesh), points=int(len(oriented.points)),
+                           points_seen=float(oriented.seen.mean()), strategy=config.surface.strategy)
+            best, best_stage = mesh, "surface"
         write_mesh(out_dir / "mesh.ply", best)
     messages = [str(w.message) for w in caught]
     for message in messages:

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 import trimesh
 
+from ..capture.images import write_image
 from ..fileio import write_atomic
 from ..viz import normal_map_rgb, tonemap
 from .inputs import NormalInputs, prepare_inputs
@@ -61,8 +62,22 @@ def predict_normals(net: NormalNet, x: NormalInputs, latent: LatentOptConfig | N
     return n1.detach().permute(0, 2, 3, 1), n2.detach().permute(0, 2, 3, 1)
 
 
+@dataclass
+class NormalStageResult:
+    """report: figures for report.json. cameras: the views at the network's resolution; n1
+    (V,H,W,3) camera frame; error (V,H,W) per-pixel squared re-rendering error (0 off the mask);
+    tir, mask (V,H,W) bool: what feature mapping reads."""
+
+    report: dict
+    cameras: object
+    n1: torch.Tensor
+    error: torch.Tensor
+    tir: torch.Tensor
+    mask: torch.Tensor
+
+
 def run_normal_stage(images: np.ndarray, masks: np.ndarray, envmap: np.ndarray, cameras, hull: trimesh.Trimesh,
-                     ior: float, out_dir: Path, config: NormalStageConfig, weights_path: Path) -> dict:
+                     ior: float, out_dir: Path, config: NormalStageConfig, weights_path: Path) -> NormalStageResult:
     net = load_weights(weights_path)
     meta = json.loads(weights_path.with_suffix(".json").read_text())
     x = prepare_inputs(torch.from_numpy(images), torch.from_numpy(masks), torch.from_numpy(envmap), cameras, hull,
@@ -73,20 +88,21 @@ def run_normal_stage(images: np.ndarray, masks: np.ndarray, envmap: np.ndarray, 
     pred_render = render_layer(x.envmap, n1, n2, x.cameras, ior=ior)
     err_vh = ((comparable(vh_render.image) - x.image) ** 2).mean(-1)
     err_pred = ((comparable(pred_render.image) - x.image) ** 2).mean(-1)
+    tir = pred_render.tir & m
+    err_pred = err_pred * m
     folder = out_dir / "normals"
     folder.mkdir(parents=True, exist_ok=True)
     for v in range(len(m)):
-        arrays = dict(n1=n1[v].numpy(), n2=n2[v].numpy(), mask=m[v].numpy(), tir=pred_render.tir[v].numpy() & m[v].numpy(),
-                      render_error=(err_pred[v] * m[v]).numpy())
+        arrays = dict(n1=n1[v].numpy(), n2=n2[v].numpy(), mask=m[v].numpy(), tir=tir[v].numpy(),
+                      render_error=err_pred[v].numpy())
         write_atomic(folder / f"view_{v:02d}.npz", lambda p, a=arrays: np.savez_compressed(p, **a))
         panels = [tonemap(x.image[v].numpy()), normal_map_rgb(x.vh_n1[v].numpy(), m[v].numpy()),
                   normal_map_rgb(n1[v].numpy(), m[v].numpy()), comparable(pred_render.image[v]).numpy()]
         gap = np.ones((panels[0].shape[0], 3, 3), np.float32)
-        from ..capture.images import write_image
-
         write_image(folder / f"view_{v:02d}.png", np.concatenate([panels[0], gap, panels[1], gap, panels[2], gap,
                                                                   panels[3]], axis=1), encoding="linear")
     count = max(int(m.sum()), 1)
-    return {"weights": str(weights_path), "network_size": [net.cfg.width, net.cfg.height],
-            "render_error_vh": float(err_vh[m].sum()) / count, "render_error": float(err_pred[m].sum()) / count,
-            "latent_iterations": [config.latent.iterations_n2, config.latent.iterations_both]}
+    report = {"weights": str(weights_path), "network_size": [net.cfg.width, net.cfg.height],
+              "render_error_vh": float(err_vh[m].sum()) / count, "render_error": float(err_pred[m].sum()) / count,
+              "latent_iterations": [config.latent.iterations_n2, config.latent.iterations_both]}
+    return NormalStageResult(report, x.cameras, n1, err_pred, tir, m)
