@@ -30,7 +30,9 @@ def _angles(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> np.ndarray:
 
 
 @dataclass
-class _Row:
+class NormalErrors:
+    """Pools the angle errors and squared render error of one row of Table 1 over scenes."""
+
     n1: list = field(default_factory=list)
     n2: list = field(default_factory=list)
     sq_err: float = 0.0
@@ -60,9 +62,9 @@ def evaluate_normals(dataset, weights: dict[str, Path], latent: LatentOptConfig 
 
     reporter = reporter or Reporter(quiet=True)
     nets = {name: load_weights(path) for name, path in weights.items()}
-    rows = {"vh": _Row(), **{name: _Row() for name in nets}}
+    rows = {"vh": NormalErrors(), **{name: NormalErrors() for name in nets}}
     if "wr+cv" in nets and latent is not None:
-        rows["wr+cv+op"] = _Row()
+        rows["wr+cv+op"] = NormalErrors()
     n = len(dataset) if not max_scenes else min(max_scenes, len(dataset))
     for i in reporter.track(range(n), description="test scenes"):
         sample = dataset[i]

@@ -181,10 +181,18 @@ def farthest_point_sample(xyz: Tensor, m: int) -> Tensor:
     return out
 
 
-def _sq_dist(a: Tensor, b: Tensor) -> Tensor:
-    """(B, n, 3), (B, m, 3) -> (B, n, m) squared distances (torch.cdist; matmul-based for speed,
-    so accurate to ~1e-7 x |x|^2, ample for neighbour selection)."""
-    return torch.cdist(a, b).square_()
+def _sq_dist(a: Tensor, b: Tensor, b_sq: Tensor | None = None, row_term: bool = True) -> Tensor:
+    """(B, n, 3), (B, m, 3) -> (B, n, m) squared distances |a|² + |b|² - 2 a·b (one batched
+    matmul, as torch.cdist's matmul mode, without its square root: ~2x faster than cdist here;
+    accurate to ~1e-7 x |x|², ample for neighbour selection). b_sq: precomputed |b|² (B, 1, m).
+    row_term=False leaves out |a|², which changes no row's ordering (for nearest-neighbour
+    searches)."""
+    if b_sq is None:
+        b_sq = b.square().sum(-1).unsqueeze(1)
+    d = torch.baddbmm(b_sq, a, b.transpose(1, 2), alpha=-2.0)
+    if row_term:
+        d = d.add_(a.square().sum(-1, keepdim=True)).clamp_min_(0.0)
+    return d
 
 
 @torch.no_grad()
@@ -204,9 +212,10 @@ def ball_query(xyz: Tensor, centres: Tensor, radius: float, k: int) -> Tensor:
     x, c = xyz.detach(), centres.detach()
     order = torch.arange(N, device=x.device, dtype=torch.float32)  # exact up to 2^24 points
     out = torch.empty(B, M, k, dtype=torch.long, device=x.device)
+    x_sq = x.square().sum(-1).unsqueeze(1)
     step = _chunk_rows(M, N, B)
     for s in range(0, M, step):
-        d2 = _sq_dist(c[:, s:s + step], x)  # (B, m, N)
+        d2 = _sq_dist(c[:, s:s + step], x, x_sq)  # (B, m, N)
         key = torch.where(d2 <= r2, order, float(N))
         first = key.topk(kk, dim=-1, largest=False, sorted=True).values.long()  # (B, m, kk)
         found = first < N
@@ -245,7 +254,7 @@ def knn(query: Tensor, ref: Tensor, k: int) -> Tensor:
     """The k nearest `ref` points of every `query` point, nearest first.
 
     query: (B, N, 3). ref: (B, M, 3), 1 <= k <= M. Returns (B, N, k) int64 indices into M.
-    Chunked torch.cdist over the query points.
+    Chunked over the query points (distance matrices as `_sq_dist`).
     """
     B, N, _ = query.shape
     M = ref.shape[1]
@@ -253,9 +262,10 @@ def knn(query: Tensor, ref: Tensor, k: int) -> Tensor:
         raise ValueError(f"cannot take {k} nearest of {M} points")
     q, r = query.detach(), ref.detach()
     out = torch.empty(B, N, k, dtype=torch.long, device=q.device)
+    r_sq = r.square().sum(-1).unsqueeze(1)
     step = _chunk_rows(N, M, B)
     for s in range(0, N, step):
-        d = torch.cdist(q[:, s:s + step], r)
+        d = _sq_dist(q[:, s:s + step], r, r_sq, row_term=False)
         out[:, s:s + step] = d.argmin(-1, keepdim=True) if k == 1 else d.topk(k, -1, largest=False).indices
     return out
 

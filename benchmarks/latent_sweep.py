@@ -1,0 +1,58 @@
+"""How many latent-optimization steps pay: `python benchmarks/latent_sweep.py --weights W [--scenes 5]`.
+
+For the first test scenes of a dataset, runs the network and then latent optimization with
+(k, k) steps (N2 with N1 held, then both) for several k, and prints the N1/N2 median angle error,
+render error and seconds per scene for each k: the knee of this curve sets
+`LatentOptConfig`'s defaults (docs/results.md keeps the table).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+from lookingglass.data.torch_dataset import TransparentSceneDataset
+from lookingglass.normals.evaluate import NormalErrors
+from lookingglass.normals.latent import LatentOptConfig, optimize_latent
+from lookingglass.normals.train import load_weights, scene_tensors
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--data", default="data")
+    parser.add_argument("--weights", required=True)
+    parser.add_argument("--scenes", type=int, default=5)
+    parser.add_argument("--steps", default="0,10,25,50,100")
+    args = parser.parse_args()
+    ks = [int(k) for k in args.steps.split(",")]
+    ds = TransparentSceneDataset(args.data, "test", views=10)
+    net = load_weights(args.weights)
+    rows = {k: NormalErrors() for k in ks}
+    for i in range(min(args.scenes, len(ds))):
+        t = scene_tensors(ds[i], net.cfg, 1.4723)
+        for k in ks:
+            start = time.perf_counter()
+            if k == 0:
+                with torch.no_grad():
+                    n1, n2 = net(t["inputs"], t["cost_volume"])
+            else:
+                n1, n2, _ = optimize_latent(net, t["inputs"], t["cost_volume"], t["envmap"], t["image"], t["mask"],
+                                            t["cameras"], LatentOptConfig(k, k))
+            rows[k].add(n1.detach(), n2.detach(), t, time.perf_counter() - start)
+        print(f"scene {i + 1}/{min(args.scenes, len(ds))}", flush=True)
+    print(f"\nLatent-optimization sweep: {args.weights}, first {args.scenes} test scenes of {args.data}, 10 views\n")
+    print("| steps (N2 + both) | N1 median (°) | N2 median (°) | render error (×1e-2) | seconds / scene |")
+    print("|---|---|---|---|---|")
+    for k, row in rows.items():
+        s = row.summary()
+        print(f"| {k} + {k} | {s['n1_median']:.2f} | {s['n2_median']:.2f} | {100 * s['render_error']:.3f} | "
+              f"{row.seconds / max(1, min(args.scenes, len(ds))):.1f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    np.set_printoptions(precision=3)
+    raise SystemExit(main())
