@@ -33,8 +33,10 @@ How we read the paper where it is loose:
 
 Every loss returns a `PointLoss(total, point, normal)`: total = λ1 point + λ2 normal, point and
 normal the unweighted, reduced terms (for logging). All share one call signature, so
-`LOSSES[name](pred_points, pred_normals, gt_points, gt_normals, **targets)` works for any name;
-keywords a loss does not use are ignored.
+`LOSSES[name](pred_points, pred_normals, gt_points, gt_normals, **targets)` works for any name
+(targets: hull_points, view_points, view_normals, view_valid; options: lambda_point,
+lambda_normal, reduction, squared); a loss ignores the ones it does not use, and a misspelt
+keyword raises TypeError.
 """
 
 from __future__ import annotations
@@ -126,13 +128,16 @@ def _paired(pred_points: Tensor, pred_normals: Tensor, target_points: Tensor, ta
 
 def nearest_l2_loss(pred_points: Tensor, pred_normals: Tensor, gt_points: Tensor, gt_normals: Tensor, *,
                     hull_points: Tensor | None = None, lambda_point: float = LAMBDA_POINT,
-                    lambda_normal: float = LAMBDA_NORMAL, reduction: str = "mean", **_) -> PointLoss:
+                    lambda_normal: float = LAMBDA_NORMAL, reduction: str = "mean",
+                    view_points: Tensor | None = None, view_normals: Tensor | None = None,
+                    view_valid: Tensor | None = None, squared: bool = True) -> PointLoss:
     """L_P^nearest, paper Eq. 2: Σ λ1 ||p - p̂||² + λ2 ||N - N̂||².
 
     pred_points, pred_normals: (B, N, 3) p = p̃ + δp̃ and N. gt_points, gt_normals: (B, M, 3)
     ground-truth surface samples {q} and their unit normals. hull_points: (B, N, 3) the hull
     points p̃; the paper's p̂ is the ground truth nearest to p̃. Without hull_points the query
     is the (detached) prediction p itself, which makes this the p -> q half of Chamfer.
+    view_points, view_normals, view_valid, squared: unused (the shared LOSSES signature).
     """
     _check(pred_points, pred_normals, gt_points, gt_normals)
     query = pred_points if hull_points is None else hull_points
@@ -143,14 +148,15 @@ def nearest_l2_loss(pred_points: Tensor, pred_normals: Tensor, gt_points: Tensor
 def view_dependent_l2_loss(pred_points: Tensor, pred_normals: Tensor, gt_points: Tensor, gt_normals: Tensor, *,
                            view_points: Tensor, view_normals: Tensor, view_valid: Tensor | None = None,
                            hull_points: Tensor | None = None, lambda_point: float = LAMBDA_POINT,
-                           lambda_normal: float = LAMBDA_NORMAL, reduction: str = "mean", **_) -> PointLoss:
+                           lambda_normal: float = LAMBDA_NORMAL, reduction: str = "mean",
+                           squared: bool = True) -> PointLoss:
     """L_P^view, paper Eq. 3: Σ λ1 ||p - p̂_v*||² + λ2 ||N - N̂_v*||².
 
     view_points, view_normals: (B, N, 3) the per-point targets p̂_v*, N̂_v* precomputed by the
     caller (`view_targets`: ground truth seen through p̃ by its chosen view v*), world frame.
     view_valid: (B, N) bool, False where no view was chosen or its ray missed the ground truth;
     there the target falls back to Eq. 2's nearest point (to hull_points, see
-    `nearest_l2_loss`). None: all valid. Other arguments as `nearest_l2_loss`.
+    `nearest_l2_loss`). None: all valid. Other arguments as `nearest_l2_loss`; squared: unused.
     """
     _check(pred_points, pred_normals, gt_points, gt_normals)
     if view_points.shape != pred_points.shape or view_normals.shape != pred_points.shape:
@@ -167,7 +173,9 @@ def view_dependent_l2_loss(pred_points: Tensor, pred_normals: Tensor, gt_points:
 
 def chamfer_loss(pred_points: Tensor, pred_normals: Tensor, gt_points: Tensor, gt_normals: Tensor, *,
                  lambda_point: float = LAMBDA_POINT, lambda_normal: float = LAMBDA_NORMAL,
-                 reduction: str = "mean", squared: bool = True, **_) -> PointLoss:
+                 reduction: str = "mean", squared: bool = True, hull_points: Tensor | None = None,
+                 view_points: Tensor | None = None, view_normals: Tensor | None = None,
+                 view_valid: Tensor | None = None) -> PointLoss:
     """L_P^CD, paper Eq. 4: both directions between the prediction {p, N} and the ground truth
     {q, N_q}, each with λ1/2 on the distance to the nearest point of the other set and λ2/2 on
     the difference to that point's normal.
@@ -175,6 +183,7 @@ def chamfer_loss(pred_points: Tensor, pred_normals: Tensor, gt_points: Tensor, g
     pred_points, pred_normals: (B, N, 3). gt_points, gt_normals: (B, M, 3) evenly sampled
     ground-truth surface points and unit normals. squared: square the norms (default; see the
     module docstring). `point` = ½(d(p→q) + d(q→p)), `normal` likewise, each reduced per side.
+    hull_points, view_points, view_normals, view_valid: unused (the shared LOSSES signature).
     """
     _check(pred_points, pred_normals, gt_points, gt_normals)
     to_gt = knn(pred_points, gt_points, 1)[..., 0]  # G(p, {q}), (B, N)
