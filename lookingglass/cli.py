@@ -226,6 +226,40 @@ def train_normals(
     run(dataset, out, config, device=resolve_device(device), reporter=Reporter(quiet=quiet))
 
 
+@app.command("train-points")
+def train_points(
+    data: Path = typer.Option(..., "--data", help="Dataset folder made by `generate` (uses DATA/train)."),
+    normals: Path = typer.Option(..., "--normals", help="The trained normal net's weights.safetensors."),
+    out: Path = typer.Option(..., "--out", help="Run folder: config, feature cache, checkpoints, metrics, weights."),
+    preset: str = typer.Option("cpu", help="cpu or paper network sizes and schedule."),
+    loss: str = typer.Option("chamfer", help="chamfer (the paper's best), nearest or view."),
+    strategy: str = typer.Option("RE", help="Feature mapping: RE (the paper's best), NE or AV."),
+    epochs: Optional[int] = typer.Option(None, help="Override the preset's epochs."),
+    max_scenes: int = typer.Option(0, help="Use only the first N scenes (0: all)."),
+    device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
+    seed: int = typer.Option(0, help="Initialization, shuffling and point-sampling seed."),
+    threads: int = typer.Option(1, help="Torch threads on the CPU (0: half the cores; PNet is fastest on 1)."),
+    quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
+) -> None:
+    """Train the point network on normal-net features (cached in OUT/features; resumes from
+    OUT/checkpoint.pt; runs under torchrun for DDP)."""
+    from .config import resolve_device
+    from .data.torch_dataset import TransparentSceneDataset
+    from .normals.train import load_weights
+    from .points.train import point_train_preset, train_points as run
+    from .progress import Reporter
+
+    import dataclasses
+
+    base = point_train_preset(preset)
+    config = dataclasses.replace(base, loss=loss, strategy=strategy, seed=seed, max_scenes=max_scenes,
+                                 epochs=base.epochs if epochs is None else epochs)  # checks loss and strategy
+    views = load_weights(normals).cfg.num_views
+    dataset = TransparentSceneDataset(data, "train", views=views, augment=False)
+    run(dataset, out, config, normals, device=resolve_device(device), reporter=Reporter(quiet=quiet),
+        threads=threads)
+
+
 @app.command("eval-normals")
 def eval_normals(
     data: Path = typer.Option(..., "--data", help="Dataset folder with a test split (DATA/test)."),

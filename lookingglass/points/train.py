@@ -1,0 +1,345 @@
+"""Training of the point network (PNet, paper Sec. 3.2): feature preparation and the loss of one
+step. The loop (Adam, the step schedule, checkpoints and exact resume, metrics.jsonl, progress,
+DDP under torchrun) is lookingglass.training's, shared with the normal net.
+
+Two phases, both resumable:
+
+1. Feature preparation, once per training scene, cached as RUN_DIR/features/<scene>.npz
+   (written atomically; a scene whose file exists is skipped, so an interrupted run picks up
+   where it stopped). Per scene: the trained normal net predicts N1, N2 for every view (a plain
+   forward pass, *no latent optimization*: its hundreds of rendering-layer steps per scene would
+   cost many times the rest of training; PNet learns to correct the net's raw predictions), the
+   rendering layer gives their per-pixel rendering error and TIR mask, `cfg.net.num_points`
+   points are sampled on the visual hull and `map_features` maps the predictions onto them with
+   the config's strategy; then the ground-truth targets the loss needs. Under torchrun each
+   process prepares every world-th scene. RUN_DIR/features/source.json records the normal
+   weights' SHA-256: a cache made with other normal weights is refused, not mixed.
+2. Training: one scene per step, PNet(features) -> offset, normal; p = p̃ + offset; the loss
+   LOSSES[config.loss] with the paper's λ1 = 200, λ2 = 5.
+
+Frame. Everything is in the scene's *hull-normalized frame*, p_n = (p - c) / s with the hull's
+centre c and scale s (max |p_n| = 1 over the hull; the "hull" entry of the scene's meta.json,
+the numbers `carve_visual_hull` returned), because that is the frame the pipeline maps features
+in at inference (points/stage.py). Ground truth and cameras are moved into it too.
+
+Cached arrays (float32 unless noted; N = cfg.net.num_points, world = hull-normalized frame):
+  features         (N, 12)  features.FEATURE_COLUMNS: p̃, hull normal, mapped N1, error, TIR, cos
+  gt_points, gt_normals        (N, 3)  chamfer: even samples of the GT surface, face normals
+  nearest_points, nearest_normals (N, 3)  nearest, view: the exact closest GT surface point to
+                                       each p̃ and the smooth normal there
+  view_points, view_normals    (N, 3)  view: the GT first hit on the ray from the chosen view's
+                                       camera through p̃ (`losses.view_targets`)
+  view_valid       (N,) bool   view: a view was chosen and its ray hit the GT
+
+RUN_DIR also holds config.json, checkpoint.pt, metrics.jsonl (epoch, step, lr, loss,
+loss_point, loss_normal, loss_input, seconds, processes; loss_input is the loss of the untouched
+input, hull points with the mapped normals: what the net must beat) and, at the end,
+weights.safetensors + weights.json (the PointNetConfig, the loss and the strategy).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+import trimesh
+from torch import Tensor
+
+from .. import training
+from ..errors import LookingGlassError
+from ..fileio import write_atomic, write_json
+from ..normals.model import NormalNet
+from ..normals.render_layer import comparable, render_layer
+from ..normals.train import load_weights, scene_tensors
+from ..progress import Reporter
+from ..threads import torch_threads
+from .features import FEATURE_COLUMNS, STRATEGIES, map_features, sample_hull_points
+from .losses import LOSSES, PointLoss, view_targets
+from .model import PRESETS, PointNet, PointNetConfig
+
+__all__ = [
+    "PointTrainConfig",
+    "point_train_preset",
+    "TARGET_KEYS",
+    "scene_point_data",
+    "prepare_features",
+    "feature_path",
+    "load_scene_arrays",
+    "point_loss",
+    "train_points",
+    "save_point_weights",
+    "load_point_weights",
+]
+
+# The cached target arrays each loss reads (beside "features").
+TARGET_KEYS: dict[str, tuple[str, ...]] = {
+    "chamfer": ("gt_points", "gt_normals"),
+    "nearest": ("nearest_points", "nearest_normals"),
+    "view": ("nearest_points", "nearest_normals", "view_points", "view_normals", "view_valid"),
+}
+FEATURE_DIR = "features"
+
+
+@dataclass
+class PointTrainConfig:
+    """PNet training. loss: a key of LOSSES ("chamfer", the paper's best; "nearest"; "view").
+    strategy: feature mapping, AV / NE / RE (the paper's best; "view" needs NE or RE, which
+    choose a view per point). lr halves every `lr_halve_epochs`. max_scenes: 0 for all.
+    ior: the glass's index of refraction, for the rendering error of the features."""
+
+    net: PointNetConfig = field(default_factory=PointNetConfig)
+    loss: str = "chamfer"
+    strategy: str = "RE"
+    epochs: int = 10
+    lr: float = 1e-4
+    lr_halve_epochs: int = 2
+    checkpoint_every: int = 50
+    seed: int = 0
+    max_scenes: int = 0
+    ior: float = 1.4723
+
+    def __post_init__(self) -> None:
+        self.strategy = str(self.strategy).upper()
+        if self.loss not in LOSSES:
+            raise LookingGlassError(f"unknown point loss {self.loss!r} (choose from {', '.join(LOSSES)})")
+        if self.strategy not in STRATEGIES:
+            raise LookingGlassError(f"unknown feature-mapping strategy {self.strategy!r} "
+                                    f"(choose from {', '.join(STRATEGIES)})")
+        if self.loss == "view" and self.strategy == "AV":
+            raise LookingGlassError('the "view" loss needs a strategy that chooses a view (NE or RE), not AV')
+
+
+def point_train_preset(name: str) -> PointTrainConfig:
+    """"paper": the paper's PNet on 20 000 points, lr 1e-4 halved every 2 of 10 epochs.
+    "cpu": the small PNet on 4096 points (model.cpu_config, residual start), a higher rate
+    (the residual start keeps the first steps tame) halved every 2 of 6 epochs. Measured on a
+    2-core machine with another training job on it, 1 thread, 128x96 images, 10 views: feature
+    preparation ~4 s a scene (cost volume and normal net ~2.6 s of it), then ~0.33 s a step:
+    for 600 scenes ~40 min of features once and ~3.5 min an epoch."""
+    if name not in PRESETS:
+        raise LookingGlassError(f"unknown preset '{name}' (choose from {', '.join(PRESETS)})")
+    if name == "cpu":
+        return PointTrainConfig(net=PRESETS[name](), epochs=6, lr=3e-4, lr_halve_epochs=2, checkpoint_every=100)
+    return PointTrainConfig(net=PRESETS[name]())
+
+
+# ---- one scene -> cached arrays ---------------------------------------------------------------------
+def _normalized(mesh: trimesh.Trimesh, center: np.ndarray, scale: float) -> trimesh.Trimesh:
+    return trimesh.Trimesh((np.asarray(mesh.vertices, np.float64) - center) / scale, np.asarray(mesh.faces),
+                           process=False, validate=False)
+
+
+def _closest_points(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The closest surface point of `mesh` to each of `points` (N, 3) and the smooth
+    (vertex-interpolated, as RayCaster's hits) unit normal there: (N, 3), (N, 3) float32."""
+    closest, _, face = trimesh.proximity.closest_point(mesh, points)
+    tri = np.asarray(mesh.faces)[face]  # (N, 3) vertex ids
+    bary = trimesh.triangles.points_to_barycentric(np.asarray(mesh.vertices)[tri], closest)
+    normal = np.einsum("nk,nkj->nj", bary, np.asarray(mesh.vertex_normals)[tri])
+    normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
+    return closest.astype(np.float32), normal.astype(np.float32)
+
+
+def scene_point_data(normal_net: NormalNet, sample: dict, gt_mesh: trimesh.Trimesh, hull_mesh: trimesh.Trimesh,
+                     center, scale: float, config: PointTrainConfig, seed: int,
+                     device: str = "cpu") -> dict[str, np.ndarray]:
+    """PNet's input features and the loss's targets for one training scene.
+
+    normal_net: the trained normal net (eval mode; a plain forward, no latent optimization).
+    sample: the dataset item (data/torch_dataset.py keys; views and resolution as the net's).
+    gt_mesh, hull_mesh: the ground truth and the visual hull, dataset world frame. center (3,),
+    scale: the hull normalization, p_n = (p - center) / scale. seed: point sampling.
+    Returns float32 numpy arrays (bool for view_valid) in the hull-normalized frame: "features"
+    (N, 12) and TARGET_KEYS[config.loss] (see the module docstring).
+    """
+    center = np.asarray(center, np.float64)
+    scale = float(scale)
+    t = scene_tensors(sample, normal_net.cfg, config.ior, device)
+    with torch.no_grad():
+        n1, n2 = normal_net(t["inputs"], t["cost_volume"])
+        n1_hw, n2_hw = n1.permute(0, 2, 3, 1), n2.permute(0, 2, 3, 1)  # (V, H, W, 3) camera frame
+        rendered = render_layer(t["envmap"], n1_hw, n2_hw, t["cameras"], ior=config.ior)
+        mask = t["mask"]
+        error = ((comparable(rendered.image) - t["image"]) ** 2).mean(-1) * mask  # (V, H, W)
+        tir = rendered.tir & mask
+    hull = _normalized(hull_mesh, center, scale)
+    gt = _normalized(gt_mesh, center, scale)
+    cams = t["cameras"].to(device="cpu").transformed(torch.as_tensor(center), scale)
+    points, hull_normals = sample_hull_points(hull, config.net.num_points, seed)
+    mapped = map_features(points, hull_normals, hull, cams, n1_hw.cpu(), error.cpu(), tir.cpu(), mask.cpu(),
+                          config.strategy)
+    out = {"features": mapped["features"].numpy().astype(np.float32)}
+    if config.loss == "chamfer":
+        out["gt_points"], out["gt_normals"] = sample_hull_points(gt, config.net.num_points, seed + 1)
+    else:
+        out["nearest_points"], out["nearest_normals"] = _closest_points(gt, points)
+    if config.loss == "view":
+        vp, vn, valid = view_targets(points, mapped["chosen_view"], cams.origin, gt)
+        out["view_points"], out["view_normals"], out["view_valid"] = vp.numpy(), vn.numpy(), valid.numpy()
+    return out
+
+
+# ---- the cache ----------------------------------------------------------------------------------------
+def _scene_name(dataset, index: int) -> str:
+    """The scene's folder name when the dataset has folders (stable when more scenes finish
+    later), else its index."""
+    dirs = getattr(dataset, "scene_dirs", None)
+    return Path(dirs[index]).name if dirs is not None else f"scene_{index:05d}"
+
+
+def feature_path(run_dir: str | os.PathLike, dataset, index: int) -> Path:
+    """RUN_DIR/features/<scene>.npz of dataset item `index`."""
+    return Path(run_dir) / FEATURE_DIR / f"{_scene_name(dataset, index)}.npz"
+
+
+def load_scene_arrays(path: Path, loss: str) -> dict[str, np.ndarray]:
+    """The cached "features" and TARGET_KEYS[loss] arrays of one scene (no pickles)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in ("features", *TARGET_KEYS[loss])}
+    except (OSError, ValueError, KeyError) as exc:
+        raise LookingGlassError(f"cannot read cached point features ({exc}); delete the file to remake it",
+                                path) from None
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _check_source(run_dir: Path, normals: Path, views: int, rank: int) -> str:
+    """Record (or compare) the normal weights the cache is made from; returns their SHA-256."""
+    digest = _sha256(normals)
+    source = {"normals_sha256": digest, "views": views}
+    path = run_dir / FEATURE_DIR / "source.json"
+    if path.exists():
+        try:
+            saved = json.loads(path.read_text())
+        except ValueError as exc:
+            raise LookingGlassError(f"cannot read the feature cache's source ({exc})", path) from None
+        if saved != source:
+            raise LookingGlassError("the cached point features were made with other normal weights or views; "
+                                    "use a new --out or the same --normals", path)
+    elif rank == 0:
+        write_json(path, source)
+    return digest
+
+
+def prepare_features(dataset, run_dir: str | os.PathLike, config: PointTrainConfig, normal_net: NormalNet,
+                     device: str = "cpu", reporter: Reporter | None = None, rank: int = 0,
+                     world: int = 1) -> dict:
+    """Make the missing RUN_DIR/features/<scene>.npz of the first `config.max_scenes` items
+    (all for 0); process `rank` of `world` makes the items i with i % world == rank.
+    dataset: scenes with `dataset[i]`, `meshes(i)` -> (gt, hull) and `meta(i)` (its "hull"
+    entry: center, scale), views and resolution matching `normal_net.cfg`.
+    Returns {"made": [indices], "skipped": count, "seconds": float} for this process."""
+    reporter = reporter or Reporter(quiet=True)
+    n = len(dataset) if not config.max_scenes else min(config.max_scenes, len(dataset))
+    mine = [i for i in range(n) if i % world == rank]
+    todo = [i for i in mine if not feature_path(run_dir, dataset, i).exists()]
+    start = time.perf_counter()
+    cfg = normal_net.cfg
+    for i in reporter.track(todo, description="point features"):
+        sample = dataset[i]
+        V, _, H, W = sample["image"].shape
+        if (V, H, W) != (cfg.num_views, cfg.height, cfg.width):
+            raise LookingGlassError(f"scene {_scene_name(dataset, i)} has {V} views of {W}x{H}, the normal net takes "
+                                    f"{cfg.num_views} of {cfg.width}x{cfg.height}")
+        gt, hull = dataset.meshes(i)
+        frame = dataset.meta(i)["hull"]
+        arrays = scene_point_data(normal_net, sample, gt, hull, frame["center"], frame["scale"], config,
+                                  seed=config.seed * 1_000_003 + i, device=device)
+        write_atomic(feature_path(run_dir, dataset, i), lambda tmp: np.savez(tmp, **arrays))
+    return {"made": todo, "skipped": len(mine) - len(todo), "seconds": round(time.perf_counter() - start, 2)}
+
+
+# ---- the loss of one step ---------------------------------------------------------------------------
+def point_loss(name: str, points: Tensor, normals: Tensor, targets: dict[str, Tensor]) -> PointLoss:
+    """LOSSES[name] on predictions points, normals (B, N, 3) and the cached targets (B, ., 3).
+
+    For "nearest" (and "view"'s fallback) the targets are the exact closest GT points to the
+    hull points, precomputed; they are passed as both the GT set and the query of the loss's
+    nearest search, which then returns each row's own target (Eq. 2 with exact targets, instead
+    of the nearest of a finite GT sample set).
+    """
+    loss = LOSSES[name]
+    if name == "chamfer":
+        return loss(points, normals, targets["gt_points"], targets["gt_normals"])
+    near_p, near_n = targets["nearest_points"], targets["nearest_normals"]
+    if name == "nearest":
+        return loss(points, normals, near_p, near_n, hull_points=near_p)
+    return loss(points, normals, near_p, near_n, hull_points=near_p, view_points=targets["view_points"],
+                view_normals=targets["view_normals"], view_valid=targets["view_valid"])
+
+
+# ---- weights ----------------------------------------------------------------------------------------
+def save_point_weights(run_dir: str | os.PathLike, net: PointNet, extra: dict | None = None) -> Path:
+    """RUN_DIR/weights.safetensors + weights.json ({"net": PointNetConfig, "kind": "points", ...})."""
+    return training.save_weights(Path(run_dir), net, {"kind": "points", **(extra or {})})
+
+
+def load_point_weights(path: str | os.PathLike) -> PointNet:
+    """PNet from weights.safetensors and the weights.json beside it (never unpickles); eval mode,
+    CPU. Refuses normal-net weights."""
+    net, _ = training.load_weights(path, PointNetConfig, PointNet, kind="points")
+    return net  # type: ignore[return-value]
+
+
+# ---- training ---------------------------------------------------------------------------------------
+def train_points(dataset, run_dir: str | os.PathLike, config: PointTrainConfig, normals: str | os.PathLike,
+                 device: str = "cpu", reporter: Reporter | None = None, max_steps: int | None = None,
+                 threads: int = 1) -> dict:
+    """Prepare (or reuse) the feature cache, then train PNet; resumes from RUN_DIR/checkpoint.pt.
+
+    dataset: training scenes (TransparentSceneDataset, not augmented: the features are made
+    once, at the exposure inference uses), with the views and resolution of the normal net.
+    normals: the normal net's weights.safetensors. threads: torch intra-op threads on the CPU
+    (1 by default: PNet is many small ops, and on a busy 2-core machine 2 threads measured ~10x
+    slower than 1; 0: half the cores; < 0: leave torch's setting). Returns the last epoch's
+    metrics (see the module docstring).
+    """
+    normals = Path(normals)
+    run_dir = Path(run_dir)
+    session = training.TrainingSession(run_dir, config, device, reporter)  # refuses another config first
+    with torch_threads(threads if not device.startswith("cuda") else -1):
+        normal_net = load_weights(normals).to(device)
+        digest = _check_source(run_dir, normals, normal_net.cfg.num_views, session.rank)
+        summary = prepare_features(dataset, run_dir, config, normal_net, device, session.reporter, session.rank,
+                                   session.world)
+        if summary["made"]:
+            session.reporter.info(f"point features: made {len(summary['made'])}, reused {summary['skipped']} "
+                                  f"({summary['seconds']:.1f} s)")
+        del normal_net
+        session.barrier()
+        keys = ("features", *TARGET_KEYS[config.loss])
+        xyz, mapped_normal = FEATURE_COLUMNS["point"], FEATURE_COLUMNS["normal"]
+
+        def step(model: torch.nn.Module, index: int, global_step: int) -> tuple[Tensor, dict[str, float]]:
+            arrays = load_scene_arrays(feature_path(run_dir, dataset, index), config.loss)
+            batch = {k: torch.from_numpy(arrays[k]).unsqueeze(0).to(device) for k in keys}
+            features = batch["features"]  # (1, N, 12)
+            offset, normal = model(features)
+            loss = point_loss(config.loss, features[..., xyz] + offset, normal, batch)
+            with torch.no_grad():  # the input itself: hull points with the mapped normals
+                base = point_loss(config.loss, features[..., xyz], F.normalize(features[..., mapped_normal], dim=-1),
+                                  batch)
+            return loss.total, {"loss_point": float(loss.point.detach()), "loss_normal": float(loss.normal.detach()),
+                                "loss_input": float(base.total)}
+
+        def weights_extra(steps: int) -> dict:
+            return {"kind": "points", "steps": steps, "loss": config.loss, "strategy": config.strategy,
+                    "normals_sha256": digest}
+
+        return session.fit(lambda: PointNet(config.net), len(dataset), step, weights_extra=weights_extra,
+                           labels={"loss_point": "points", "loss_normal": "normals", "loss_input": "input"},
+                           max_steps=max_steps)

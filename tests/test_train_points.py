@@ -1,0 +1,121 @@
+"""Point-net training: the feature cache is made once and reused, the loss decreases, resume is
+exact, weights load back, another config in the same folder is refused, and the CLI runs.
+(The shared loop's torchrun path is covered by tests/test_train_normals.py.)"""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from lookingglass.data.dataset import DatasetConfig, generate_dataset
+from lookingglass.data.torch_dataset import TransparentSceneDataset
+from lookingglass.errors import LookingGlassError
+from lookingglass.normals.model import cpu_config as normal_cpu_config
+from lookingglass.normals.train import TrainConfig, load_weights, train_normals
+from lookingglass.points.features import NUM_FEATURES
+from lookingglass.points.model import PointNetConfig
+from lookingglass.points.train import (PointTrainConfig, load_point_weights, prepare_features, point_train_preset,
+                                       train_points)
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """3 scenes of 5 views at 64x48 and a normal net trained for 2 steps on them."""
+    root = tmp_path_factory.mktemp("points_data")
+    cfg = DatasetConfig(width=64, height=48, envmap_height=32, samples_per_axis=1)
+    generate_dataset(root / "data", 3, views=5, split="train", seed=0, config=cfg, workers=1)
+    net = normal_cpu_config(width=64, height=48, num_views=5, enc_channels=(16, 32, 64), fnet_channels=16)
+    train_normals(TransparentSceneDataset(root / "data", "train"), root / "normals",
+                  TrainConfig(net=net, epochs=1, lr=1e-3, max_scenes=2))
+    return root / "data", root / "normals" / "weights.safetensors"
+
+
+def _config(epochs=3, loss="chamfer"):
+    net = PointNetConfig(num_points=512, centres=(128, 32), radii=(0.2, 0.4), neighbours=(16, 16),
+                         sa_mlps=((16, 16), (32, 32)), fp_mlps=((32,), (16,)), gn_group_size=8, residual=True)
+    return PointTrainConfig(net=net, loss=loss, epochs=epochs, lr=1e-3, checkpoint_every=2)
+
+
+def _log(run):
+    return [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+
+
+def test_training_caches_features_lowers_loss_and_ships_weights(tiny, tmp_path):
+    data, normals = tiny
+    ds = TransparentSceneDataset(data, "train", augment=False)
+    run = tmp_path / "run"
+    train_points(ds, run, _config(epochs=4), normals)
+    cached = sorted((run / "features").glob("scene_*.npz"))
+    assert len(cached) == 3
+    with np.load(cached[0]) as z:
+        assert z["features"].shape == (512, NUM_FEATURES) and z["features"].dtype == np.float32
+        assert z["gt_points"].shape == (512, 3) and z["gt_normals"].dtype == np.float32
+    log = _log(run)
+    assert len(log) == 4 and log[-1]["step"] == 12
+    assert log[-1]["loss"] < log[0]["loss"] and log[-1]["loss"] < log[-1]["loss_input"]
+    net = load_point_weights(run / "weights.safetensors")
+    assert net.cfg == _config().net
+    assert json.loads((run / "weights.json").read_text())["loss"] == "chamfer"
+
+    # The cache is reused: a finished run run again remakes nothing; a deleted file is remade alone.
+    mtimes = [p.stat().st_mtime_ns for p in cached]
+    train_points(ds, run, _config(epochs=4), normals)
+    assert [p.stat().st_mtime_ns for p in cached] == mtimes
+    cached[1].unlink()
+    summary = prepare_features(ds, run, _config(epochs=4), load_weights(normals))
+    assert summary["made"] == [1] and summary["skipped"] == 2
+
+    with pytest.raises(LookingGlassError, match="different config"):
+        train_points(ds, run, _config(epochs=5), normals)
+    with pytest.raises(LookingGlassError, match="normals-network weights"):
+        load_point_weights(normals)
+
+
+def test_resume_after_interruption_is_exact(tiny, tmp_path):
+    data, normals = tiny
+    ds = TransparentSceneDataset(data, "train", augment=False)
+    cfg = _config(epochs=3, loss="nearest")
+    train_points(ds, tmp_path / "full", cfg, normals)
+    shutil.copytree(tmp_path / "full" / "features", tmp_path / "part" / "features")  # same cache, less time
+    # Interrupted after 4 steps (mid-epoch 2, after a step checkpoint), then resumed to the end.
+    train_points(ds, tmp_path / "part", cfg, normals, max_steps=4)
+    train_points(ds, tmp_path / "part", cfg, normals)
+    assert _log(tmp_path / "part")[-1]["step"] == 9
+    a = load_point_weights(tmp_path / "full" / "weights.safetensors").state_dict()
+    b = load_point_weights(tmp_path / "part" / "weights.safetensors").state_dict()
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-7)
+
+
+def test_view_loss_targets(tiny, tmp_path):
+    data, normals = tiny
+    ds = TransparentSceneDataset(data, "train", augment=False)
+    cfg = _config(epochs=1, loss="view")
+    cfg.max_scenes = 1
+    metrics = train_points(ds, tmp_path / "view", cfg, normals)
+    assert metrics["step"] == 1 and np.isfinite(metrics["loss"])
+    with np.load(next((tmp_path / "view" / "features").glob("scene_*.npz"))) as z:
+        assert z["view_valid"].dtype == bool and z["view_valid"].mean() > 0.5
+        assert z["view_points"].shape == z["nearest_points"].shape == (512, 3)
+    with pytest.raises(LookingGlassError, match="NE or RE"):
+        PointTrainConfig(loss="view", strategy="AV")
+    with pytest.raises(LookingGlassError, match="unknown point loss"):
+        PointTrainConfig(loss="nope")
+    assert point_train_preset("cpu").net.num_points == 4096
+
+
+def test_cli_train_points(tiny, tmp_path):
+    data, normals = tiny
+    cmd = [sys.executable, "-m", "lookingglass.cli", "train-points", "--data", str(data), "--normals", str(normals),
+           "--preset", "cpu", "--max-scenes", "2", "--epochs", "1", "--device", "cpu", "--quiet",
+           "--out", str(tmp_path / "cli")]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    log = _log(tmp_path / "cli")
+    assert log[0]["step"] == 2 and log[0]["processes"] == 1
+    assert load_point_weights(tmp_path / "cli" / "weights.safetensors").cfg.num_points == 4096
