@@ -19,7 +19,11 @@ def direction_to_uv(directions: Tensor) -> tuple[Tensor, Tensor]:
     """Unit directions (..., 3) -> (u, v) each (...,), u in [0, 1), v in [0, 1]."""
     x, y, z = directions.unbind(-1)
     u = torch.remainder(torch.atan2(x, -z) / (2 * math.pi), 1.0)
-    v = torch.acos(y.clamp(-1.0, 1.0)) / math.pi
+    y = y.clamp(-1.0, 1.0)
+    # acos' is infinite at +-1 (a ray straight up or down): take the value at y and the gradient
+    # just inside, so the value stays exact and gradients stay finite.
+    y_inside = y.clamp(-1.0 + 1e-6, 1.0 - 1e-6)
+    v = (torch.acos(y_inside) + (torch.acos(y) - torch.acos(y_inside)).detach()) / math.pi
     return u, v
 
 

@@ -60,7 +60,9 @@ def fresnel_dielectric(cos_i: Tensor, eta: float | Tensor) -> Tensor:
     eta = torch.as_tensor(eta, dtype=cos_i.dtype, device=cos_i.device)
     cos_i = cos_i.clamp(0.0, 1.0)
     sin2_t = eta * eta * (1 - cos_i * cos_i)
-    cos_t = torch.sqrt((1 - sin2_t).clamp(min=0.0))
+    # clamp above 0: sqrt'(0) is infinite, and inf x (clamp's zero gradient) = NaN would poison
+    # every gradient through a TIR or grazing pixel (cos_t changes by 1e-6 at most)
+    cos_t = torch.sqrt((1 - sin2_t).clamp(min=1e-12))
     r_s = (eta * cos_i - cos_t) / (eta * cos_i + cos_t).clamp(min=1e-12)
     r_p = (cos_i - eta * cos_t) / (cos_i + eta * cos_t).clamp(min=1e-12)
     f = 0.5 * (r_s * r_s + r_p * r_p)
