@@ -295,6 +295,7 @@ def eval_shapes(
     strategies: str = typer.Option("RE,NE,AV", help="Feature-mapping strategies, comma-separated."),
     latent_iterations: int = typer.Option(50, help="Latent-optimization steps per phase (0: skip)."),
     max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
+    point_weights: Optional[Path] = typer.Option(None, help="PNet weights: adds a pnet row (default: shipped)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write rows and per-scene metrics as JSON."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
@@ -317,7 +318,9 @@ def eval_shapes(
         raise LookingGlassError(f"no weights ship for {views} views; pass --weights")
     latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
     dataset = TransparentSceneDataset(data, "test", views=views)
-    result = evaluate_shapes(dataset, weights, chosen, latent, max_scenes=max_scenes, reporter=Reporter(quiet=quiet))
+    point_weights = point_weights or shipped_weights(views, "points")[0]
+    result = evaluate_shapes(dataset, weights, chosen, latent, max_scenes=max_scenes, reporter=Reporter(quiet=quiet),
+                             point_weights=point_weights)
     if json_out is not None:
         write_json(json_out, result)
     print(markdown_table(result["rows"]))

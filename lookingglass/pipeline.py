@@ -27,6 +27,7 @@ from .fileio import write_atomic, write_json
 from .hull import carve_visual_hull
 from .normals.stage import run_normal_stage, shipped_weights
 from .points.stage import surface_from_normals
+from .points.train import load_point_weights
 from .progress import Reporter, peak_memory_mb
 
 STAGES = ("visual_hull", "normals", "surface")
@@ -121,10 +122,14 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
                     rec["note"] = f"{capture.num_views} views: using the weights trained for {trained_views}"
 
         if normals is not None and "surface" in wanted:
-            with reporter.stage("surface", "surface (feature mapping + Poisson)") as rec:
+            point_weights = Path(config.surface.point_weights) if config.surface.point_weights \
+                else shipped_weights(trained_views, "points")[0]
+            point_net = load_point_weights(point_weights) if point_weights is not None else None
+            with reporter.stage("surface", "surface (feature mapping + PNet + Poisson)") as rec:
                 mesh, oriented = surface_from_normals(hull.mesh, hull.center, hull.scale, normals.cameras,
                                                       normals.n1, normals.error, normals.tir, normals.mask,
-                                                      config.surface)
+                                                      config.surface, point_net)
+                rec["point_weights"] = str(point_weights) if point_weights is not None else None
                 write_points(out_dir / "points.ply", oriented.points, oriented.normals)
                 rec.update(mesh=mesh_summary(mesh), points=int(len(oriented.points)),
                            points_seen=float(oriented.seen.mean()), strategy=config.surface.strategy)

@@ -95,3 +95,14 @@ def error_map(image: Tensor, rendered: Tensor, mask: Tensor) -> Tensor:
     """The paper's Ĩ^er = |I - (Ĩ^r + Ĩ^t)| ⊙ M: (V, H, W, 3) images (`image` normalized and
     clipped, `rendered` clipped here), (V, H, W) mask."""
     return (image - comparable(rendered)).abs() * mask.unsqueeze(-1).to(image.dtype)
+
+
+def prediction_error_maps(envmap: EnvironmentMap, normal1: Tensor, normal2: Tensor, cameras: Cameras, image: Tensor,
+                          mask: Tensor, ior: float = IOR_GLASS) -> tuple[Tensor, Tensor, LayerOutput]:
+    """What feature mapping reads from a prediction: the per-pixel squared re-rendering error
+    (V, H, W), mean over RGB of (I - clip(I^r + I^t))², 0 off the mask; the TIR mask (V, H, W)
+    inside the mask; and the layer's output. normal1/2 (V, H, W, 3) camera frame; image
+    (V, H, W, 3) normalized; mask (V, H, W) bool."""
+    out = render_layer(envmap, normal1, normal2, cameras, ior=ior)
+    error = ((comparable(out.image) - image) ** 2).mean(-1) * mask
+    return error, out.tir & mask, out

@@ -22,7 +22,7 @@ from ..viz import normal_map_rgb, tonemap
 from .inputs import NormalInputs, prepare_inputs
 from .latent import LatentOptConfig, optimize_latent
 from .model import NormalNet, build_cost_volume, network_inputs
-from .render_layer import comparable, render_layer
+from .render_layer import comparable, prediction_error_maps
 from .train import load_weights
 
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
@@ -38,13 +38,14 @@ class NormalStageConfig:
     latent: LatentOptConfig = field(default_factory=LatentOptConfig)
 
 
-def shipped_weights(num_views: int) -> tuple[Path | None, int]:
-    """The packaged weights for the trained view count nearest `num_views` (None if none ship)."""
-    available = [v for v in TRAINED_VIEWS if (WEIGHTS_DIR / f"normals_{v:02d}views.safetensors").exists()]
+def shipped_weights(num_views: int, net: str = "normals") -> tuple[Path | None, int]:
+    """The packaged weights of `net` ("normals" or "points") for the trained view count nearest
+    `num_views` (None if none ship)."""
+    available = [v for v in TRAINED_VIEWS if (WEIGHTS_DIR / f"{net}_{v:02d}views.safetensors").exists()]
     if not available:
         return None, 0
     best = min(available, key=lambda v: (abs(v - num_views), -v))
-    return WEIGHTS_DIR / f"normals_{best:02d}views.safetensors", best
+    return WEIGHTS_DIR / f"{net}_{best:02d}views.safetensors", best
 
 
 def predict_normals(net: NormalNet, x: NormalInputs, latent: LatentOptConfig | None, ior: float):
@@ -84,12 +85,8 @@ def run_normal_stage(images: np.ndarray, masks: np.ndarray, envmap: np.ndarray, 
                        net.cfg.width, net.cfg.height, int(meta.get("envmap_height", 128)), ior)
     n1, n2 = predict_normals(net, x, config.latent, ior)
     m = x.mask
-    vh_render = render_layer(x.envmap, x.vh_n1, x.vh_n2, x.cameras, ior=ior)
-    pred_render = render_layer(x.envmap, n1, n2, x.cameras, ior=ior)
-    err_vh = ((comparable(vh_render.image) - x.image) ** 2).mean(-1)
-    err_pred = ((comparable(pred_render.image) - x.image) ** 2).mean(-1)
-    tir = pred_render.tir & m
-    err_pred = err_pred * m
+    err_vh, _, _ = prediction_error_maps(x.envmap, x.vh_n1, x.vh_n2, x.cameras, x.image, m, ior)
+    err_pred, tir, pred_render = prediction_error_maps(x.envmap, n1, n2, x.cameras, x.image, m, ior)
     folder = out_dir / "normals"
     folder.mkdir(parents=True, exist_ok=True)
     for v in range(len(m)):

@@ -11,6 +11,7 @@ the ground truth's unit-sphere scale; per-scene values are kept so the worst sce
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
@@ -19,18 +20,19 @@ import torch
 from ..errors import LookingGlassError
 from ..metrics import shape_metrics
 from ..normals.latent import LatentOptConfig, optimize_latent
-from ..normals.render_layer import comparable, render_layer
+from ..normals.render_layer import prediction_error_maps
 from ..normals.train import load_weights, scene_tensors
 from ..progress import Reporter
-from ..surface import poisson_surface
-from .stage import SurfaceConfig, map_normals_to_hull
+from .stage import SurfaceConfig, surface_from_normals
+from .train import load_point_weights
 
 METRICS = ("cd", "cdn_mean", "cdn_med", "metro")
 
 
 def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] = ("RE",),
                     latent: LatentOptConfig | None = None, surface: SurfaceConfig | None = None,
-                    max_scenes: int = 0, reporter: Reporter | None = None) -> dict:
+                    max_scenes: int = 0, reporter: Reporter | None = None,
+                    point_weights: Path | None = None) -> dict:
     """Returns {"rows": {name: {metric: mean}}, "scenes": [{"index", name: {metric}}...]}.
 
     dataset: a TransparentSceneDataset (test split, not augmented). The dataset's meshes are in
@@ -38,6 +40,10 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
     reporter = reporter or Reporter(quiet=True)
     surface = surface or SurfaceConfig()
     net = load_weights(weights) if weights is not None else None
+    point_net = load_point_weights(point_weights) if point_weights is not None else None
+    point_strategy = "RE"
+    if point_weights is not None:  # PNet is evaluated with the mapping it was trained on
+        point_strategy = json.loads(Path(point_weights).with_suffix(".json").read_text()).get("strategy", "RE")
     n = len(dataset) if not max_scenes else min(max_scenes, len(dataset))
     scenes = []
     for i in reporter.track(range(n), description="test scenes"):
@@ -60,18 +66,14 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
             if n2 is None:  # GT: its own rendering error is the renderer's residual, take it as 0
                 error, tir = torch.zeros(mask.shape), sample["tir"].bool() & mask
             else:
-                out = render_layer(t["envmap"], n1_hw, n2.permute(0, 2, 3, 1), cams)
-                error = ((comparable(out.image) - t["image"]) ** 2).mean(-1) * mask
-                tir = out.tir & mask
-            for strategy in (strategies if name == "normals" else strategies[:1]):
-                cfg = dataclasses.replace(surface, strategy=strategy)
-                oriented = map_normals_to_hull(hull, cams, n1_hw, error, tir, mask, cfg)
-                row = f"normals-{strategy}" if name == "normals" else name
-                try:
-                    mesh = poisson_surface(oriented.points, oriented.normals, depth=cfg.depth, hull=hull)
-                    record[row] = shape_metrics(mesh, gt)
-                except LookingGlassError as exc:  # counted, not hidden: the row's mean says how many failed
-                    record[row] = {"error": str(exc)}
+                error, tir, _ = prediction_error_maps(t["envmap"], n1_hw, n2.permute(0, 2, 3, 1), cams, t["image"],
+                                                      mask)
+            runs = [(f"normals-{s}", s, None) for s in strategies] if name == "normals" else [(name, strategies[0], None)]
+            if name == "normals" and point_net is not None:
+                runs.append((f"pnet-{point_strategy}", point_strategy, point_net))
+            for row, strategy, pnet in runs:
+                record[row] = _surface_metrics(hull, gt, dataset.meta(i)["hull"], cams, n1_hw, error, tir, mask,
+                                               dataclasses.replace(surface, strategy=strategy), pnet)
         scenes.append(record)
     names = [k for k in scenes[0] if k != "index"] if scenes else []
     rows = {}
@@ -80,6 +82,18 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
         rows[name] = {m: float(np.mean([s[m] for s in ok])) if ok else float("nan") for m in METRICS}
         rows[name]["failed"] = len(scenes) - len(ok)
     return {"rows": rows, "scenes": scenes}
+
+
+def _surface_metrics(hull, gt, frame: dict, cams, n1_hw, error, tir, mask, cfg: SurfaceConfig, point_net) -> dict:
+    """Shape metrics of the surface made from the maps, in the hull-normalized frame (PNet's;
+    `frame` is the scene meta's "hull" entry), measured in the ground truth's frame; a failed
+    Poisson is recorded, not hidden."""
+    center, scale = np.asarray(frame["center"], np.float64), float(frame["scale"])
+    try:
+        mesh, _ = surface_from_normals(hull, center, scale, cams, n1_hw, error, tir, mask, cfg, point_net)
+        return shape_metrics(mesh, gt)
+    except LookingGlassError as exc:
+        return {"error": str(exc)}
 
 
 def _plain_config():

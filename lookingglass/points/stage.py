@@ -1,9 +1,9 @@
-"""From per-view normal predictions to a surface: points on the hull, feature mapping, Poisson.
+"""From per-view normal predictions to a surface: points on the hull, feature mapping, PNet, Poisson.
 
-This is the paper's Sec. 3.2 without the point network: the hull's points keep their positions
-and take the normal the chosen view predicts (feature mapping, Algorithm 1 by default), then
-screened Poisson turns the oriented points into a watertight mesh. The point network (PNet) will
-slot in between mapping and Poisson, moving the points and refining the normals.
+The paper's Sec. 3.2: points sampled on the hull take the normal the chosen view predicts
+(feature mapping, Algorithm 1 by default); the point network (PNet), when weights are given,
+moves each point by an offset and refines its normal; screened Poisson turns the oriented points
+into a watertight mesh. Without PNet the points keep the hull's positions.
 
 Everything happens in the normalized frame of the hull (max |p| = 1), so Poisson's depth and the
 occlusion tolerance mean the same for every capture; the mesh goes back to the capture's frame.
@@ -20,17 +20,21 @@ import trimesh
 from ..physics.camera import Cameras
 from ..surface import poisson_surface
 from .features import STRATEGIES, map_features, sample_hull_points
+from .model import PointNet
 
 
 @dataclass
 class SurfaceConfig:
-    """points: hull samples; strategy: AV, NE or RE (feature mapping); depth: Poisson octree depth
-    (8: 1/128 of the unit sphere's box, about the hull's 128^3 voxel); seed: point sampling."""
+    """points: hull samples (without PNet; PNet takes its own count); strategy: AV, NE or RE
+    (feature mapping); depth: Poisson octree depth (8: 1/128 of the unit sphere's box, about the
+    hull's 128^3 voxel); seed: point sampling; point_weights: PNet weights ("" = the shipped
+    ones, if any)."""
 
     points: int = 20000
     strategy: str = "RE"
     depth: int = 8
     seed: int = 0
+    point_weights: str = ""
 
     def __post_init__(self) -> None:
         if self.strategy.upper() not in STRATEGIES:
@@ -47,26 +51,35 @@ class OrientedPoints:
 
 
 def map_normals_to_hull(hull_mesh: trimesh.Trimesh, cameras: Cameras, n1: torch.Tensor, error: torch.Tensor,
-                        tir: torch.Tensor, mask: torch.Tensor, config: SurfaceConfig) -> OrientedPoints:
-    """Hull points with the predicted first-hit normals of the chosen views.
+                        tir: torch.Tensor, mask: torch.Tensor, config: SurfaceConfig,
+                        point_net: PointNet | None = None) -> OrientedPoints:
+    """Hull points with the predicted first-hit normals of the chosen views, refined by PNet
+    (offsets and normals) when `point_net` is given.
 
-    hull_mesh and cameras share one frame (normalized or not: a similarity changes no direction);
-    cameras at the maps' resolution. n1 (V, H, W, 3) camera frame; error (V, H, W) per-pixel
-    rendering error; tir, mask (V, H, W) bool."""
-    points, hull_normals = sample_hull_points(hull_mesh, config.points, config.seed)
+    hull_mesh and cameras share one frame, the hull-normalized one when PNet runs (it was
+    trained there); cameras at the maps' resolution. n1 (V, H, W, 3) camera frame; error
+    (V, H, W) per-pixel rendering error; tir, mask (V, H, W) bool. PNet takes its own point
+    count (its config's num_points) instead of `config.points`."""
+    count = point_net.cfg.num_points if point_net is not None else config.points
+    points, hull_normals = sample_hull_points(hull_mesh, count, config.seed)
     mapped = map_features(points, hull_normals, hull_mesh, cameras, n1, error, tir, mask, config.strategy)
-    return OrientedPoints(points, mapped["normal"].numpy(), mapped["seen"].numpy())
+    if point_net is None:
+        return OrientedPoints(points, mapped["normal"].numpy(), mapped["seen"].numpy())
+    with torch.no_grad():
+        refined, normals = point_net.refine(mapped["features"][None])
+    return OrientedPoints(refined[0].numpy(), normals[0].numpy(), mapped["seen"].numpy())
 
 
 def surface_from_normals(hull_mesh: trimesh.Trimesh, center: np.ndarray, scale: float, cameras: Cameras,
                          n1: torch.Tensor, error: torch.Tensor, tir: torch.Tensor, mask: torch.Tensor,
-                         config: SurfaceConfig) -> tuple[trimesh.Trimesh, OrientedPoints]:
+                         config: SurfaceConfig, point_net: PointNet | None = None,
+                         ) -> tuple[trimesh.Trimesh, OrientedPoints]:
     """Mesh and oriented points, both in the capture's frame, from a hull in the capture's frame,
     its normalization ((p - center) / scale), and per-view maps as in `map_normals_to_hull`."""
     unit_hull = hull_mesh.copy()
     unit_hull.vertices = (np.asarray(hull_mesh.vertices) - center) / scale
     unit_cams = cameras.transformed(torch.as_tensor(center), scale)
-    oriented = map_normals_to_hull(unit_hull, unit_cams, n1, error, tir, mask, config)
+    oriented = map_normals_to_hull(unit_hull, unit_cams, n1, error, tir, mask, config, point_net)
     mesh = poisson_surface(oriented.points, oriented.normals, depth=config.depth, hull=unit_hull)
     mesh.vertices = np.asarray(mesh.vertices) * scale + center
     return mesh, OrientedPoints((oriented.points * scale + center).astype(np.float32), oriented.normals,

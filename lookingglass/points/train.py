@@ -56,7 +56,7 @@ from .. import training
 from ..errors import LookingGlassError
 from ..fileio import write_atomic, write_json
 from ..normals.model import NormalNet
-from ..normals.render_layer import comparable, render_layer
+from ..normals.render_layer import prediction_error_maps
 from ..normals.train import load_weights, scene_tensors
 from ..progress import Reporter
 from ..threads import torch_threads
@@ -165,10 +165,8 @@ def scene_point_data(normal_net: NormalNet, sample: dict, gt_mesh: trimesh.Trime
     with torch.no_grad():
         n1, n2 = normal_net(t["inputs"], t["cost_volume"])
         n1_hw, n2_hw = n1.permute(0, 2, 3, 1), n2.permute(0, 2, 3, 1)  # (V, H, W, 3) camera frame
-        rendered = render_layer(t["envmap"], n1_hw, n2_hw, t["cameras"], ior=config.ior)
         mask = t["mask"]
-        error = ((comparable(rendered.image) - t["image"]) ** 2).mean(-1) * mask  # (V, H, W)
-        tir = rendered.tir & mask
+        error, tir, _ = prediction_error_maps(t["envmap"], n1_hw, n2_hw, t["cameras"], t["image"], mask, config.ior)
     hull = _normalized(hull_mesh, center, scale)
     gt = _normalized(gt_mesh, center, scale)
     cams = t["cameras"].to(device="cpu").transformed(torch.as_tensor(center), scale)
