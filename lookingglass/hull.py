@@ -472,7 +472,16 @@ def _ls3_loop(vertices: np.ndarray, faces: np.ndarray, iterations: int,
         ms.meshing_repair_non_manifold_edges(method="Split Vertices")
         ms.meshing_repair_non_manifold_vertices()
         ms.meshing_close_holes()
+        ms.meshing_remove_unreferenced_vertices()
+        repaired = ms.current_mesh()
+        repaired_v, repaired_f = repaired.vertex_matrix().copy(), repaired.face_matrix().copy()
         subdivide()
+        ms.meshing_remove_unreferenced_vertices()
+        if not np.isfinite(ms.current_mesh().vertex_matrix()).all():
+            # LS3 can still fail on a repaired surface, with NaN positions; smooth it without
+            # subdividing instead (Taubin: no shrinkage), rather than hand on a broken hull.
+            return (_taubin(repaired_v.astype(np.float64), repaired_f.astype(np.int64), 2 * iterations),
+                    repaired_f.astype(np.int64))
     m = ms.current_mesh()
     return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
 
@@ -652,7 +661,7 @@ def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig()
     # Marching cubes and MeshLab both return shared vertices, so no merging (process=False keeps
     # the topology exactly as built; merging coincident vertices could pinch it).
     mesh = trimesh.Trimesh(verts, faces, process=False, validate=False)
-    if not (mesh.is_watertight and mesh.is_winding_consistent):
+    if not (np.isfinite(mesh.vertices).all() and mesh.is_watertight and mesh.is_winding_consistent):
         raise LookingGlassError(
             "internal error: the carved hull is not a closed, consistently oriented surface "
             "(please report it, with the masks and cameras)")

@@ -432,3 +432,24 @@ def test_ls3_survives_pinched_marching_cubes_surfaces():
     out = trimesh.Trimesh(v, f)
     assert out.is_watertight
     assert abs(out.volume - 2.0) < 0.3  # two unit cubes; LS3 rounds (and slightly inflates) the corners
+
+
+def test_repaired_hull_has_finite_vertices_only():
+    """Training scene 132 of the default dataset (seed 0): its marching-cubes surface is pinched, and
+    after the repair LS3 used to hand back NaN, unreferenced vertices (NaN scale, NaN area). The
+    hull must have only finite, referenced vertices and a proper normalization."""
+    from lookingglass.data.dataset import DatasetConfig, scene_seeds
+    from lookingglass.data.rigs import paper_rig_params
+    from lookingglass.data.shapes import random_shape
+
+    config = DatasetConfig()
+    seeds = scene_seeds(0, "train", 132)
+    mesh = random_shape(seeds["shape"], config.shape)
+    rig = paper_rig_params(10, np.random.default_rng(seeds["rig"]))
+    cams = Cameras.look_at(rig["origin"], rig["target"], rig["up"], config.fov_x_deg, config.width, config.height)
+    masks = object_masks(mesh, cams)
+    vh = carve_visual_hull(masks, cams, dataclasses.replace(config.hull, num_threads=1))
+    v = np.asarray(vh.mesh.vertices)
+    assert np.isfinite(v).all() and np.isfinite(vh.scale) and 0.5 < vh.scale < 2.0
+    assert len(np.unique(vh.mesh.faces)) == len(v)  # every vertex belongs to a face
+    assert vh.mesh.is_watertight and vh.mesh.volume > 0
