@@ -265,7 +265,7 @@ def eval_normals(
     data: Path = typer.Option(..., "--data", help="Dataset folder with a test split (DATA/test)."),
     weights: list[str] = typer.Option(..., "--weights", help="VARIANT=PATH (basic, wr, wr+cv); repeat."),
     views: int = typer.Option(10, help="Views per scene."),
-    latent_iterations: int = typer.Option(50, help="Latent-optimization steps per phase for wr+cv+op (0: skip)."),
+    latent_iterations: int = typer.Option(10, help="Latent-optimization steps per phase for wr+cv+op (0: skip)."),
     max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
@@ -293,7 +293,7 @@ def eval_shapes(
     weights: Optional[Path] = typer.Option(None, help="Normal-network weights (default: the shipped ones)."),
     views: int = typer.Option(10, help="Views per scene."),
     strategies: str = typer.Option("RE,NE,AV", help="Feature-mapping strategies, comma-separated."),
-    latent_iterations: int = typer.Option(50, help="Latent-optimization steps per phase (0: skip)."),
+    latent_iterations: int = typer.Option(10, help="Latent-optimization steps per phase (0: skip)."),
     max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
     point_weights: Optional[Path] = typer.Option(None, help="PNet weights: adds a pnet row (default: shipped)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write rows and per-scene metrics as JSON."),
