@@ -40,17 +40,23 @@ def test_render_reconstruct_evaluate(rendered_scene):
     assert len(scene["views"]) == 10
     run("reconstruct", root / "scene", "--out", root / "out", "--quiet")
     report = json.loads((root / "out" / "report.json").read_text())
-    expected = ["visual_hull", "normals"] if shipped_weights(10)[0] else ["visual_hull"]
+    expected = ["visual_hull", "normals", "surface"] if shipped_weights(10)[0] else ["visual_hull"]
     assert report["stages_run"] == expected and report["num_views"] == 10
+    assert report["mesh_from"] == expected[-1]
     assert report["stages"][1]["seconds"] > 0 and report["config"]["hull"]["resolution"] == 128
-    hull = trimesh.load(root / "out" / "mesh.ply", force="mesh")
+    hull = trimesh.load(root / "out" / "visual_hull.ply", force="mesh")
+    mesh = trimesh.load(root / "out" / "mesh.ply", force="mesh")
     gt = trimesh.load(root / "gt.ply", force="mesh")
-    assert hull.is_watertight
+    assert hull.is_watertight and mesh.is_watertight
     # A torus seen from 10 views: the hole is carved, so the hull stays close (paper's VH CD 5.14
-    # on its test set; the metric's own sampling floor is ~2).
+    # on its test set; the metric's own sampling floor is ~2). The surface (Poisson through points
+    # on the hull) must stay as close: it may not lose the hole or drift.
     metrics = json.loads(run("evaluate", root / "out" / "mesh.ply", root / "gt.ply").stdout)
-    assert metrics == pytest.approx(shape_metrics(hull, gt), rel=1e-9)
-    assert 2.0 < metrics["cd"] < 30.0
+    assert metrics == pytest.approx(shape_metrics(mesh, gt), rel=1e-9)
+    hull_metrics = shape_metrics(hull, gt)
+    assert 2.0 < hull_metrics["cd"] < 30.0
+    assert metrics["cd"] < 1.25 * hull_metrics["cd"], (metrics, hull_metrics)
+    assert mesh.euler_number == gt.euler_number == 0  # genus 1 kept
     # The hull contains the object: its volume is at least the torus's.
     assert hull.volume >= gt.volume * 0.99
 
@@ -82,8 +88,9 @@ def test_reconstruct_normals_beat_the_hull(rendered_scene):
     hull = trace_two_bounce(trimesh.load(out / "visual_hull.ply", force="mesh"), cams)
 
     def median_angle(a, b, m):
+        a, b = a[m], b[m]  # off the masks the normals are zero
         cos = np.clip((a * b).sum(-1) / np.linalg.norm(a, axis=-1) / np.linalg.norm(b, axis=-1), -1, 1)
-        return float(np.degrees(np.median(np.arccos(cos[m]))))
+        return float(np.degrees(np.median(np.arccos(cos))))
 
     m1 = mask & gt.mask.numpy() & hull.mask.numpy()
     m2 = m1 & gt.valid.numpy() & hull.hit2.numpy()
