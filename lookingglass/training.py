@@ -58,6 +58,7 @@ __all__ = [
     "save_weights",
     "load_weights",
     "dist_info",
+    "record_or_compare",
 ]
 
 
@@ -160,6 +161,22 @@ def dist_info() -> tuple[int, int]:
 
 
 # ---- the session ----------------------------------------------------------------------------------
+def record_or_compare(path: Path, data: dict, rank: int, mismatch: str, advice: str) -> None:
+    """The first run writes `data` to `path` (rank 0 only); a later one must bring the same data,
+    else LookingGlassError("<mismatch> (differs in <keys>); <advice>") naming the file."""
+    data = json.loads(json.dumps(data))  # tuples -> lists, as stored
+    if path.exists():
+        try:
+            saved = json.loads(path.read_text())
+        except ValueError as exc:
+            raise LookingGlassError(f"cannot read {path.name} ({exc})", path) from None
+        if saved != data:
+            changed = sorted(k for k in set(saved) | set(data) if saved.get(k) != data.get(k))
+            raise LookingGlassError(f"{mismatch} (differs in {', '.join(changed)}); {advice}", path)
+    elif rank == 0:
+        write_json(path, data)
+
+
 class TrainingSession:
     """One training run in RUN_DIR: opens the process group under torchrun, checks or writes
     config.json, and runs the loop (`fit`). Work a trainer does before the loop (e.g. caching
@@ -185,19 +202,8 @@ class TrainingSession:
         self._check_config()
 
     def _check_config(self) -> None:
-        cfg_path = self.run_dir / "config.json"
-        cfg_dict = json.loads(json.dumps(dataclasses.asdict(self.config)))  # tuples -> lists, as stored
-        if cfg_path.exists():
-            try:
-                saved = json.loads(cfg_path.read_text())
-            except ValueError as exc:
-                raise LookingGlassError(f"cannot read the run's config ({exc})", cfg_path) from None
-            if saved != cfg_dict:
-                changed = sorted(k for k in set(saved) | set(cfg_dict) if saved.get(k) != cfg_dict.get(k))
-                raise LookingGlassError("run folder holds a different config (differs in "
-                                        f"{', '.join(changed)}); use a new --out or the same settings", cfg_path)
-        elif self.rank == 0:
-            write_json(cfg_path, cfg_dict)
+        record_or_compare(self.run_dir / "config.json", dataclasses.asdict(self.config), self.rank,
+                          "run folder holds a different config", "use a new --out or the same settings")
 
     def barrier(self) -> None:
         """Wait for every process (no-op outside torchrun)."""

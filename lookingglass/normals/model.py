@@ -10,7 +10,7 @@ All normal maps are camera-frame (x right, y up, z towards the camera), tensors 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn

@@ -40,7 +40,6 @@ weights.safetensors + weights.json (the PointNetConfig, the loss and the strateg
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import time
 from dataclasses import dataclass, field
@@ -54,7 +53,7 @@ from torch import Tensor
 
 from .. import training
 from ..errors import LookingGlassError
-from ..fileio import write_atomic, write_json
+from ..fileio import write_atomic
 from ..normals.model import NormalNet
 from ..normals.render_layer import prediction_error_maps
 from ..normals.train import load_weights, scene_tensors
@@ -219,17 +218,9 @@ def _check_source(run_dir: Path, normals: Path, views: int, rank: int) -> str:
     """Record (or compare) the normal weights the cache is made from; returns their SHA-256."""
     digest = _sha256(normals)
     source = {"normals_sha256": digest, "views": views}
-    path = run_dir / FEATURE_DIR / "source.json"
-    if path.exists():
-        try:
-            saved = json.loads(path.read_text())
-        except ValueError as exc:
-            raise LookingGlassError(f"cannot read the feature cache's source ({exc})", path) from None
-        if saved != source:
-            raise LookingGlassError("the cached point features were made with other normal weights or views; "
-                                    "use a new --out or the same --normals", path)
-    elif rank == 0:
-        write_json(path, source)
+    training.record_or_compare(run_dir / FEATURE_DIR / "source.json", source, rank,
+                               "the cached point features were made with other normal weights or views",
+                               "use a new --out or the same --normals")
     return digest
 
 
