@@ -144,3 +144,12 @@ def test_render_with_cameras_of_a_scene(rendered_scene, tmp_path):
     # Same silhouettes at half the size (area coverage of the full-size masks, up to edge pixels).
     half = first.masks.reshape(10, 45, 2, 60, 2).mean(axis=(2, 4)) >= 0.5
     assert (half != again.masks).mean() < 0.02
+
+
+def test_stop_after(rendered_scene, tmp_path):
+    run("reconstruct", rendered_scene / "scene", "--out", tmp_path / "o", "--stop-after", "visual_hull", "--quiet")
+    report = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert report["stages_run"] == ["visual_hull"] and report["mesh_from"] == "visual_hull"
+    assert not (tmp_path / "o" / "normals").exists() and not (tmp_path / "o" / "points.ply").exists()
+    proc = run("reconstruct", rendered_scene / "scene", "--out", tmp_path / "p", "--stop-after", "mesh", ok=False)
+    assert proc.returncode == 2 and "--stop-after" in proc.stderr and "Traceback" not in proc.stderr

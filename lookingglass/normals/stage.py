@@ -94,7 +94,9 @@ def run_normal_stage(images: np.ndarray, masks: np.ndarray, envmap: np.ndarray, 
                       render_error=err_pred[v].numpy())
         write_atomic(folder / f"view_{v:02d}.npz", lambda p, a=arrays: np.savez_compressed(p, **a))
         panels = [tonemap(x.image[v].numpy()), normal_map_rgb(x.vh_n1[v].numpy(), m[v].numpy()),
-                  normal_map_rgb(n1[v].numpy(), m[v].numpy()), comparable(pred_render.image[v]).numpy()]
+                  normal_map_rgb(n1[v].numpy(), m[v].numpy()),
+                  # the re-rendering inside the mask, the photo around it (off the mask there are no normals)
+                  tonemap(torch.where(m[v, ..., None], comparable(pred_render.image[v]), x.image[v]).numpy())]
         gap = np.ones((panels[0].shape[0], 3, 3), np.float32)
         write_image(folder / f"view_{v:02d}.png", np.concatenate([panels[0], gap, panels[1], gap, panels[2], gap,
                                                                   panels[3]], axis=1), encoding="linear")
