@@ -26,6 +26,8 @@ def reconstruct(
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
     stop_after: str = typer.Option("surface", help="Last stage to run: visual_hull, normals or surface."),
     weights: Optional[Path] = typer.Option(None, help="Normal-network weights (default: the shipped ones)."),
+    views: int = typer.Option(0, help="Use the shipped weights trained for this view count (5, 10, 20; the "
+                                      "nearest that ships); 0: the capture's view count."),
     force: bool = typer.Option(False, "--force", help="Overwrite a non-empty output folder."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
@@ -38,6 +40,9 @@ def reconstruct(
     config.device, config.stop_after = device, stop_after
     if weights is not None:
         config.normals.weights = str(weights)
+    if views < 0:
+        raise LookingGlassError(f"--views must be 5, 10, 20 or 0 (the capture's count), got {views}")
+    config.normals.views = views
     if hull_resolution is not None:
         if not 16 <= hull_resolution <= 1024:
             raise LookingGlassError(f"--hull-resolution must be in [16, 1024], got {hull_resolution}")

@@ -105,8 +105,9 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
                        timings={k: round(float(v), 3) for k, v in hull.timings.items()})
 
         best, best_stage = hull.mesh, "visual_hull"
-        weights, trained_views = (Path(config.normals.weights), capture.num_views) if config.normals.weights \
-            else shipped_weights(capture.num_views)
+        requested_views = config.normals.views or capture.num_views
+        weights, trained_views = (Path(config.normals.weights), requested_views) if config.normals.weights \
+            else shipped_weights(requested_views)
         normals = None
         if "normals" not in wanted:
             pass
@@ -118,8 +119,8 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
                                            hull.mesh, capture.ior, out_dir, config.normals, weights)
                 rec.update(normals.report)
                 rec["trained_views"] = trained_views
-                if trained_views != capture.num_views:
-                    rec["note"] = f"{capture.num_views} views: using the weights trained for {trained_views}"
+                if trained_views != requested_views:
+                    rec["note"] = f"{requested_views} views: using the weights trained for {trained_views}"
 
         if normals is not None and "surface" in wanted:
             point_weights = Path(config.surface.point_weights) if config.surface.point_weights \

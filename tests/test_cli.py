@@ -147,9 +147,24 @@ def test_render_with_cameras_of_a_scene(rendered_scene, tmp_path):
 
 
 def test_stop_after(rendered_scene, tmp_path):
-    run("reconstruct", rendered_scene / "scene", "--out", tmp_path / "o", "--stop-after", "visual_hull", "--quiet")
+    run("reconstruct", rendered_scene / "scene", "--out", tmp_path / "o", "--stop-after", "visual_hull", "--views", 5,
+        "--quiet")
     report = json.loads((tmp_path / "o" / "report.json").read_text())
     assert report["stages_run"] == ["visual_hull"] and report["mesh_from"] == "visual_hull"
     assert not (tmp_path / "o" / "normals").exists() and not (tmp_path / "o" / "points.ply").exists()
     proc = run("reconstruct", rendered_scene / "scene", "--out", tmp_path / "p", "--stop-after", "mesh", ok=False)
     assert proc.returncode == 2 and "--stop-after" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_shipped_weights_for_other_view_counts():
+    """Counts without their own weights take the nearest trained count (ties: the larger)."""
+    path, views = shipped_weights(10)
+    if path is None:
+        pytest.skip("no normal-network weights ship in this build")
+    assert views == 10 and path.name == "normals_10views.safetensors"
+    if not (path.parent / "normals_05views.safetensors").exists():
+        assert shipped_weights(5) == (path, 10) and shipped_weights(3) == (path, 10)
+    for asked in (3, 7, 12):
+        assert shipped_weights(asked)[1] in (5, 10, 20)
+    points, point_views = shipped_weights(10, "points")
+    assert points is not None and points.name == "points_10views.safetensors" and point_views == 10

@@ -31,10 +31,11 @@ TRAINED_VIEWS = (5, 10, 20)
 
 @dataclass
 class NormalStageConfig:
-    """weights: a weights.safetensors path, or "" for the shipped weights of the nearest view
-    count. latent: the post-processing (iterations 0 = off)."""
+    """weights: a weights.safetensors path, or "" for the shipped weights of the view count
+    nearest `views` (0: the capture's view count). latent: the post-processing (iterations 0 = off)."""
 
     weights: str = ""
+    views: int = 0
     latent: LatentOptConfig = field(default_factory=LatentOptConfig)
 
 
