@@ -1,7 +1,7 @@
 """`reconstruct`: run the pipeline's stages on a scene folder and write the results.
 
 Stages: visual_hull -> normals (network + latent optimization; needs weights) -> surface (hull
-points with the mapped normals, screened Poisson). Outputs (capture frame, written atomically):
+points with the mapped normals, moved and refined by PNet when its weights ship, screened Poisson). Outputs (capture frame, written atomically):
   OUT/visual_hull.ply  the carved and smoothed hull
   OUT/normals/         per-view normal maps and pictures (normals stage)
   OUT/points.ply       oriented points the surface was made from (surface stage)

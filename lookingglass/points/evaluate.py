@@ -3,8 +3,8 @@ made from normal predictions (points on the hull + feature mapping + Poisson).
 
 Rows: `vh` (the hull itself); `vh+gt-normals` (the hull's points with the ground-truth first-hit
 normals mapped by the chosen strategy: what mapping + Poisson can reach with perfect normals);
-and, per strategy, `normals-<RE|NE|AV>` with the network's normals (latent-optimized when
-`latent` is given). Metrics are DESIGN.md's (CD x1e4, Metro x1e3, CDN-mean/med in degrees), on
+per strategy, `normals-<RE|NE|AV>` with the network's normals (latent-optimized when `latent` is
+given); and `pnet-<strategy>` when point-network weights are given (its training strategy). Metrics are DESIGN.md's (CD x1e4, Metro x1e3, CDN-mean/med in degrees), on
 the ground truth's unit-sphere scale; per-scene values are kept so the worst scenes can be read.
 """
 
@@ -35,8 +35,9 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
                     point_weights: Path | None = None) -> dict:
     """Returns {"rows": {name: {metric: mean}}, "scenes": [{"index", name: {metric}}...]}.
 
-    dataset: a TransparentSceneDataset (test split, not augmented). The dataset's meshes are in
-    its world frame, the GT already unit-sphere normalized, so Poisson runs there directly."""
+    dataset: a TransparentSceneDataset (test split, not augmented). Surfaces are made in each
+    scene's hull-normalized frame (PNet's, from meta.json) and scored against the GT in its own
+    unit-sphere frame."""
     reporter = reporter or Reporter(quiet=True)
     surface = surface or SurfaceConfig()
     net = load_weights(weights) if weights is not None else None
