@@ -207,6 +207,8 @@ def train_normals(
     preset: str = typer.Option("cpu", help="cpu or paper network sizes and schedule."),
     variant: str = typer.Option("wr+cv", help="basic, wr or wr+cv (the paper's ablations)."),
     epochs: Optional[int] = typer.Option(None, help="Override the preset's epochs."),
+    lr_halve_epochs: Optional[int] = typer.Option(None, help="Override the preset's learning-rate halving period "
+                                                             "(epochs)."),
     max_scenes: int = typer.Option(0, help="Use only the first N scenes (0: all)."),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
     seed: int = typer.Option(0, help="Initialization and shuffling seed."),
@@ -225,6 +227,8 @@ def train_normals(
     config.seed, config.max_scenes = seed, max_scenes
     if epochs is not None:
         config.epochs = epochs
+    if lr_halve_epochs is not None:
+        config.lr_halve_epochs = lr_halve_epochs
     dataset = TransparentSceneDataset(data, "train", views=views, augment=True, seed=seed)
     # The network runs at the data's resolution (the dataset preset matches the network preset).
     config.net.width, config.net.height = dataset.config.width, dataset.config.height
@@ -240,6 +244,8 @@ def train_points(
     loss: str = typer.Option("chamfer", help="chamfer (the paper's best), nearest or view."),
     strategy: str = typer.Option("RE", help="Feature mapping: RE (the paper's best), NE or AV."),
     epochs: Optional[int] = typer.Option(None, help="Override the preset's epochs."),
+    lr_halve_epochs: Optional[int] = typer.Option(None, help="Override the preset's learning-rate halving period "
+                                                             "(epochs)."),
     max_scenes: int = typer.Option(0, help="Use only the first N scenes (0: all)."),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
     seed: int = typer.Option(0, help="Initialization, shuffling and point-sampling seed."),
@@ -258,7 +264,9 @@ def train_points(
 
     base = point_train_preset(preset)
     config = dataclasses.replace(base, loss=loss, strategy=strategy, seed=seed, max_scenes=max_scenes,
-                                 epochs=base.epochs if epochs is None else epochs)  # checks loss and strategy
+                                 epochs=base.epochs if epochs is None else epochs,
+                                 lr_halve_epochs=base.lr_halve_epochs if lr_halve_epochs is None else lr_halve_epochs)
+    # (replace re-runs __post_init__, which checks loss and strategy)
     views = load_weights(normals).cfg.num_views
     dataset = TransparentSceneDataset(data, "train", views=views, augment=False)
     run(dataset, out, config, normals, device=resolve_device(device), reporter=Reporter(quiet=quiet),

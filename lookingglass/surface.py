@@ -8,7 +8,8 @@ screened Poisson reconstruction (Kazhdan & Hoppe 2013, via pymeshlab
    far from the data: the median distance of its vertices to the nearest input point exceeds
    `trim_distance`, or (with a `hull`) the median of its vertices lies more than `trim_distance`
    outside the hull. Poisson's spurious blobs are such components.
-2. The largest remaining component (by area) is kept.
+2. The remaining components are kept (Poisson may cut a thin part of the object into pieces;
+   they are real surface), apart from crumbs under MIN_COMPONENT_AREA of the largest one's area.
 3. No face-level trimming. The isosurface of Poisson's indicator function is closed by
    construction; deleting faces that are far from the points (MeshLab's usual density trim)
    would open holes and break watertightness, which the pipeline's output must have. Faces
@@ -36,6 +37,7 @@ from .errors import LookingGlassError
 __all__ = ["poisson_surface", "DEFAULT_TRIM_FRACTION"]
 
 DEFAULT_TRIM_FRACTION = 0.05  # trim_distance default: this fraction of the hull's (or points') bbox diagonal
+MIN_COMPONENT_AREA = 1e-3  # components smaller than this fraction of the largest one's area are dropped
 _MIN_POINTS = 16  # Poisson on fewer oriented points gives nothing meaningful
 
 
@@ -83,7 +85,7 @@ def _outside_hull_median(hull: trimesh.Trimesh, vertices: np.ndarray, probes: in
 def poisson_surface(points, normals, depth: int = 8, hull: trimesh.Trimesh | None = None,
                     trim_distance: float | None = None, smooth_iterations: int = 0,
                     threads: int = 0, samples_per_node: float = 1.5,
-                    point_weight: float = 4.0) -> trimesh.Trimesh:
+                    point_weight: float = 10.0) -> trimesh.Trimesh:
     """Watertight, outward-oriented mesh from oriented points by screened Poisson.
 
     points: (N, 3) positions; normals: (N, 3) outward normals (need not be unit), same frame;
@@ -121,7 +123,7 @@ def poisson_surface(points, normals, depth: int = 8, hull: trimesh.Trimesh | Non
         raise LookingGlassError("Poisson surface reconstruction produced an empty mesh "
                                 f"from {len(p)} points (are the normals consistent?)")
 
-    # ---- components: drop the ones far from the data, keep the largest -------------------------
+    # ---- components: drop the ones far from the data and the crumbs, keep the rest ------------
     tree = cKDTree(p)
     parts = mesh.split(only_watertight=False)
     near = []
@@ -133,7 +135,12 @@ def poisson_surface(points, normals, depth: int = 8, hull: trimesh.Trimesh | Non
     if not near:
         raise LookingGlassError("Poisson surface reconstruction produced no surface near the input points "
                                 f"(all {len(parts)} components farther than {trim_distance:.4g})")
-    mesh = max(near, key=lambda m: m.area)
+    # Every near component is kept, not only the largest: where Poisson cuts a thin part of the
+    # object (a bar, a handle) the pieces are real surface. Crumbs below MIN_COMPONENT_AREA of the
+    # largest are dropped.
+    largest = max(part.area for part in near)
+    near = [part for part in near if part.area >= MIN_COMPONENT_AREA * largest]
+    mesh = near[0] if len(near) == 1 else trimesh.util.concatenate(near)
 
     # ---- report (not trim) faces far from every point: trimming would open holes ---------------
     far_faces = int((tree.query(mesh.triangles_center, k=1)[0] > trim_distance).sum())
@@ -141,7 +148,7 @@ def poisson_surface(points, normals, depth: int = 8, hull: trimesh.Trimesh | Non
     if smooth_iterations > 0:
         trimesh.smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=int(smooth_iterations))
 
-    mesh.fix_normals()  # consistent winding, then flipped if the volume is negative
+    mesh.fix_normals(multibody=True)  # consistent winding, each body flipped if its volume is negative
     if not mesh.is_watertight or not mesh.is_winding_consistent:
         raise LookingGlassError("Poisson surface is not watertight (open or non-manifold edges); "
                                 "try a lower depth or denser points")
