@@ -26,29 +26,31 @@ def main() -> int:
     parser.add_argument("--weights", required=True)
     parser.add_argument("--scenes", type=int, default=5)
     parser.add_argument("--steps", default="0,10,25,50,100")
+    parser.add_argument("--lrs", default=str(LatentOptConfig.lr), help="comma-separated Adam rates to sweep too")
     args = parser.parse_args()
-    ks = [int(k) for k in args.steps.split(",")]
+    lrs = [float(x) for x in args.lrs.split(",")]
+    ks = [(int(k), lr) for k in args.steps.split(",") for lr in (lrs if int(k) else lrs[:1])]
     ds = TransparentSceneDataset(args.data, "test", views=10)
     net = load_weights(args.weights)
-    rows = {k: NormalErrors() for k in ks}
+    rows = {key: NormalErrors() for key in ks}
     for i in range(min(args.scenes, len(ds))):
         t = scene_tensors(ds[i], net.cfg, 1.4723)
-        for k in ks:
+        for k, lr in ks:
             start = time.perf_counter()
             if k == 0:
                 with torch.no_grad():
                     n1, n2 = net(t["inputs"], t["cost_volume"])
             else:
                 n1, n2, _ = optimize_latent(net, t["inputs"], t["cost_volume"], t["envmap"], t["image"], t["mask"],
-                                            t["cameras"], LatentOptConfig(k, k))
-            rows[k].add(n1.detach(), n2.detach(), t, time.perf_counter() - start)
+                                            t["cameras"], LatentOptConfig(k, k, lr=lr))
+            rows[k, lr].add(n1.detach(), n2.detach(), t, time.perf_counter() - start)
         print(f"scene {i + 1}/{min(args.scenes, len(ds))}", flush=True)
     print(f"\nLatent-optimization sweep: {args.weights}, first {args.scenes} test scenes of {args.data}, 10 views\n")
-    print("| steps (N2 + both) | N1 median (°) | N2 median (°) | render error (×1e-2) | seconds / scene |")
-    print("|---|---|---|---|---|")
-    for k, row in rows.items():
+    print("| steps (N2 + both) | Adam rate | N1 median (°) | N2 median (°) | render error (×1e-2) | seconds / scene |")
+    print("|---|---|---|---|---|---|")
+    for (k, lr), row in rows.items():
         s = row.summary()
-        print(f"| {k} + {k} | {s['n1_median']:.2f} | {s['n2_median']:.2f} | {100 * s['render_error']:.3f} | "
+        print(f"| {k} + {k} | {lr if k else '-'} | {s['n1_median']:.2f} | {s['n2_median']:.2f} | {100 * s['render_error']:.3f} | "
               f"{row.seconds / max(1, min(args.scenes, len(ds))):.1f} |")
     return 0
 
