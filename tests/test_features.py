@@ -378,3 +378,38 @@ def test_rejects_bad_input(scene):
         run(scene, "XX")
     with pytest.raises(ValueError, match="n1_cam"):
         run(scene, "NE", n1=scene["n1"][:, :-1])
+
+
+def test_surface_of_exact_normals_is_the_sphere(scene):
+    """Mapping + Poisson (points.stage) on exact normals gives the unit sphere back: within two
+    depth-8 voxels (Poisson's isosurface sits within a voxel of exact oriented points; the hull's
+    facets are up to 0.0011 inside the sphere), the capture frame restored."""
+    from lookingglass.points.stage import SurfaceConfig, surface_from_normals
+
+    centre, scale = np.array([0.3, -0.2, 0.1]), 2.0  # capture frame = unit frame x 2 + centre
+    hull = scene["hull"].copy()
+    hull.vertices = np.asarray(hull.vertices) * scale + centre
+    cams = scene["cams"].transformed(torch.as_tensor(-centre / scale), 1.0 / scale)
+    mesh, oriented = surface_from_normals(hull, centre, scale, cams, scene["n1"], scene["err"], scene["tir"],
+                                          scene["mask"], SurfaceConfig(points=4000))
+    assert mesh.is_watertight and len(oriented.points) == 4000 and oriented.seen.mean() > 0.95  # the rig misses a polar cap
+    radius = np.linalg.norm((np.asarray(mesh.vertices) - centre) / scale, axis=1)
+    voxel = 1.1 * 2 / 2 ** 8
+    assert np.abs(radius - 1).max() < 2 * voxel, np.abs(radius - 1).max()
+
+
+def test_point_net_runs_on_several_clouds_of_its_trained_size(scene):
+    """With PNet, the hull gets ceil(points / num_points) independent even clouds of PNet's size
+    (seeds seed, seed + 1, ...), refined in one batch; an untrained residual PNet moves nothing."""
+    from lookingglass.points.model import PointNet, PointNetConfig
+    from lookingglass.points.stage import SurfaceConfig, map_normals_to_hull
+
+    torch.manual_seed(0)
+    net = PointNet(PointNetConfig(num_points=256, centres=(64, 16, 8, 4), radii=(0.3, 0.6, 1.0, 1.6),
+                                  neighbours=(8, 8, 8, 4), sa_mlps=((8, 8), (16, 16), (16, 16), (32, 32)),
+                                  fp_mlps=((16,), (16,), (8,), (8, 8)), gn_group_size=4, residual=True)).eval()
+    out = map_normals_to_hull(scene["hull"], scene["cams"], scene["n1"], scene["err"], scene["tir"], scene["mask"],
+                              SurfaceConfig(points=600, seed=5), net)
+    assert out.points.shape == (768, 3) and out.normals.shape == (768, 3)  # 3 clouds of 256
+    expected = np.concatenate([sample_hull_points(scene["hull"], 256, 5 + k)[0] for k in range(3)])
+    np.testing.assert_allclose(out.points, expected, atol=1e-6)
