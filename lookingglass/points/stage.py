@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import trimesh
+from scipy.spatial import cKDTree
 
 from ..physics.camera import Cameras
 from ..surface import poisson_surface
@@ -28,7 +29,8 @@ class SurfaceConfig:
     """points: hull samples for Poisson (with PNet, rounded up to whole clouds of its trained
     size); strategy: AV, NE or RE (feature mapping); depth: Poisson octree depth (8: 1/128 of the
     unit sphere's box, about the hull's 128^3 voxel); point_weight, samples_per_node: screened
-    Poisson's; seed: point sampling; point_weights: PNet weights ("" = the shipped ones, if any).
+    Poisson's; smoothing_neighbours: PNet's offsets and normals are averaged over this many
+    nearest points (0 or 1: not at all), see `smooth_over_neighbours`; seed: point sampling; point_weights: PNet weights ("" = the shipped ones, if any).
 
     Why 40 000 points and point weight 10: where two parts of the hull face each other across a
     slit narrower than the point spacing (a handle close to the body), Poisson fuses them and the
@@ -42,6 +44,7 @@ class SurfaceConfig:
     depth: int = 8
     point_weight: float = 10.0
     samples_per_node: float = 1.5
+    smoothing_neighbours: int = 16
     seed: int = 0
     point_weights: str = ""
 
@@ -83,7 +86,25 @@ def map_normals_to_hull(hull_mesh: trimesh.Trimesh, cameras: Cameras, n1: torch.
     mapped = map_features(points, hull_normals, hull_mesh, cameras, n1, error, tir, mask, config.strategy)
     with torch.no_grad():
         refined, normals = point_net.refine(mapped["features"].reshape(len(clouds), size, -1))
-    return OrientedPoints(refined.reshape(-1, 3).numpy(), normals.reshape(-1, 3).numpy(), mapped["seen"].numpy())
+    offsets = refined.reshape(-1, 3).numpy() - points
+    offsets, normals = smooth_over_neighbours(points, [offsets, normals.reshape(-1, 3).numpy()],
+                                              config.smoothing_neighbours)
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    return OrientedPoints((points + offsets).astype(np.float32), normals.astype(np.float32),
+                          mapped["seen"].numpy())
+
+
+def smooth_over_neighbours(points: np.ndarray, values: list[np.ndarray], k: int) -> list[np.ndarray]:
+    """Each of `values` (N, C) averaged over the k nearest of `points` (N, 3) (itself included).
+
+    Why: PNet's offsets carry a per-cloud noise (each cloud is refined on its own) on top of the
+    displacement it learned; the clouds interleave on the hull, so a neighbourhood average over
+    them keeps the displacement, which varies over the scale of the shape, and cancels the noise
+    that screened Poisson would otherwise follow."""
+    if k <= 1:
+        return [np.array(v, np.float64) for v in values]  # copies: callers may edit them
+    _, idx = cKDTree(points).query(points, k=min(int(k), len(points)))
+    return [np.asarray(v, np.float64)[idx].mean(axis=1) for v in values]
 
 
 def surface_from_normals(hull_mesh: trimesh.Trimesh, center: np.ndarray, scale: float, cameras: Cameras,
