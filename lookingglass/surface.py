@@ -85,7 +85,7 @@ def _outside_hull_median(hull: trimesh.Trimesh, vertices: np.ndarray, probes: in
 def poisson_surface(points, normals, depth: int = 8, hull: trimesh.Trimesh | None = None,
                     trim_distance: float | None = None, smooth_iterations: int = 0,
                     threads: int = 0, samples_per_node: float = 1.5,
-                    point_weight: float = 10.0) -> trimesh.Trimesh:
+                    point_weight: float = 4.0) -> trimesh.Trimesh:
     """Watertight, outward-oriented mesh from oriented points by screened Poisson.
 
     points: (N, 3) positions; normals: (N, 3) outward normals (need not be unit), same frame;

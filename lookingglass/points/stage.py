@@ -32,17 +32,18 @@ class SurfaceConfig:
     Poisson's; smoothing_neighbours: PNet's offsets and normals are averaged over this many
     nearest points (0 or 1: not at all), see `smooth_over_neighbours`; seed: point sampling; point_weights: PNet weights ("" = the shipped ones, if any).
 
-    Why 40 000 points and point weight 10: where two parts of the hull face each other across a
-    slit narrower than the point spacing (a handle close to the body), Poisson fuses them and the
-    slit's walls vanish. On the 10-view test split's worst case (a genus-2 shape, test scene 25),
-    Chamfer distance with ground-truth normals went 48.0 (20 000 points, weight 4) -> 27.1
-    (20 000, 10) -> 17.9 (40 000, 10) against the hull's 15.9 (depth 9 or 10 changed nothing:
-    the spacing limits); on other scenes the change was within +-0.1."""
+    Why 40 000 points: where two parts of the hull face each other across a slit narrower than
+    the point spacing (a handle close to the body), Poisson fuses them and the slit's walls vanish.
+    On the 10-view test split's worst case (a genus-2 shape, test scene 25), Chamfer distance with
+    ground-truth normals went 48.0 (20 000 points) -> 20.7 (40 000) against the hull's 15.9 (depth
+    9 or 10 changed nothing: the spacing limits); on other scenes the change was within +-0.1.
+    A point weight of 10 got scene 25 to 17.9 but, on PNet's points, opened spurious tunnels
+    (a torus came out genus 3), so it stays at MeshLab's 4."""
 
     points: int = 40000
     strategy: str = "RE"
     depth: int = 8
-    point_weight: float = 10.0
+    point_weight: float = 4.0
     samples_per_node: float = 1.5
     smoothing_neighbours: int = 16
     seed: int = 0
