@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import statistics
 import subprocess
@@ -43,6 +44,7 @@ def main() -> int:
         render_capture(shape, procedural_envmap(np.random.default_rng(args.seed), 256),
                        paper_rig(10, args.seed, width=480, height=360), tmp / "scene")
         reports = []
+        load = os.getloadavg()[0]  # other work on the machine slows every stage; say how much there was
         for r in range(args.repeats):
             out = tmp / f"out{r}"
             subprocess.run([sys.executable, "-m", "lookingglass.cli", "reconstruct", str(tmp / "scene"),
@@ -65,7 +67,9 @@ def main() -> int:
              f"({time.strftime('%Y-%m-%d')}, {platform.machine()}, torch {torch.__version__}). A procedural shape "
              f"(seed {args.seed}) rendered from the paper's 10-view rig at 480x360; `lookingglass reconstruct` in a "
              f"fresh process with the shipped weights and default settings (stages: {', '.join(stages[1:])}); "
-             f"median of {args.repeats} runs, peak = the process's maximum resident memory.", "",
+             f"median of {args.repeats} runs, peak = the process's maximum resident memory. Load average "
+             f"when it started: {load:.1f} on {os.cpu_count()} cores (a load near the core count means another "
+             "job shared the machine).", "",
              "| stage | seconds |", "|---|---|"]
     lines += [f"| {name} | {sec:.2f} |" for name, sec in per_stage.items()]
     lines += [f"| **total** | **{total:.2f}** ({total / TARGET_SECONDS:.2f} of the {TARGET_SECONDS:.0f} s target) |",
