@@ -309,7 +309,8 @@ def eval_shapes(
     latent_iterations: int = typer.Option(10, help="Latent-optimization steps per phase (0: skip)."),
     max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
     point_weights: Optional[Path] = typer.Option(None, help="PNet weights: adds a pnet row (default: shipped)."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Also write rows and per-scene metrics as JSON."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Also write rows and per-scene metrics as JSON "
+                                            "(after every scene; a rerun with the same settings resumes from it)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Print the paper's Table 2/3 (CD, CDN-mean, CDN-med, Metro) for the hull and the surfaces made
@@ -332,10 +333,27 @@ def eval_shapes(
     latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
     dataset = TransparentSceneDataset(data, "test", views=views)
     point_weights = point_weights or shipped_weights(views, "points")[0]
-    result = evaluate_shapes(dataset, weights, chosen, latent, max_scenes=max_scenes, reporter=Reporter(quiet=quiet),
-                             point_weights=point_weights)
-    if json_out is not None:
-        write_json(json_out, result)
+    settings = {"data": str(Path(data).resolve()), "weights": str(Path(weights).resolve()), "views": views,
+                "strategies": list(chosen), "latent_iterations": latent_iterations,
+                "point_weights": str(Path(point_weights).resolve()) if point_weights else None}
+    done = []
+    if json_out is not None and json_out.exists():
+        try:
+            earlier = json.loads(json_out.read_text())
+        except (OSError, ValueError) as exc:
+            raise LookingGlassError(f"{json_out}: cannot read it to resume ({exc}); remove it or pick another --json")
+        if earlier.get("settings") != settings:
+            raise LookingGlassError(f"{json_out} holds an evaluation with other settings; remove it or pick another "
+                                    "--json")
+        done = earlier.get("scenes", [])
+    reporter = Reporter(quiet=quiet)
+    if done:
+        reporter.info(f"resuming from {json_out}: {len(done)} scene(s) done")
+    save = (lambda partial: write_json(json_out, {"settings": settings, **partial})) if json_out else None
+    result = evaluate_shapes(dataset, weights, chosen, latent, max_scenes=max_scenes, reporter=reporter,
+                             point_weights=point_weights, done=done, on_scene=save)
+    if save is not None:
+        save(result)
     print(markdown_table(result["rows"]))
 
 

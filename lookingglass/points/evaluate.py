@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -32,8 +33,12 @@ METRICS = ("cd", "cdn_mean", "cdn_med", "metro")
 def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] = ("RE",),
                     latent: LatentOptConfig | None = None, surface: SurfaceConfig | None = None,
                     max_scenes: int = 0, reporter: Reporter | None = None,
-                    point_weights: Path | None = None) -> dict:
+                    point_weights: Path | None = None, done: list[dict] | None = None,
+                    on_scene: Callable[[dict], None] | None = None) -> dict:
     """Returns {"rows": {name: {metric: mean}}, "scenes": [{"index", name: {metric}}...]}.
+
+    done: scene records of an earlier, interrupted run with the same settings (their scenes are
+    not redone); on_scene: called with the partial result after every scene (to save it).
 
     dataset: a TransparentSceneDataset (test split, not augmented). Surfaces are made in each
     scene's hull-normalized frame (PNet's, from meta.json) and scored against the GT in its own
@@ -46,8 +51,9 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
     if point_weights is not None:  # PNet is evaluated with the mapping it was trained on
         point_strategy = json.loads(Path(point_weights).with_suffix(".json").read_text()).get("strategy", "RE")
     n = len(dataset) if not max_scenes else min(max_scenes, len(dataset))
-    scenes = []
-    for i in reporter.track(range(n), description="test scenes"):
+    scenes = [record for record in (done or []) if record["index"] < n]
+    finished = {record["index"] for record in scenes}
+    for i in reporter.track([i for i in range(n) if i not in finished], description="test scenes"):
         sample = dataset[i]
         gt, hull = dataset.meshes(i)
         t = scene_tensors(sample, net.cfg if net is not None else _plain_config(), 1.4723)
@@ -76,6 +82,14 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
                 record[row] = _surface_metrics(hull, gt, dataset.meta(i)["hull"], cams, n1_hw, error, tir, mask,
                                                dataclasses.replace(surface, strategy=strategy), pnet)
         scenes.append(record)
+        if on_scene is not None:
+            on_scene(summarize(scenes))
+    return summarize(scenes)
+
+
+def summarize(scenes: list[dict]) -> dict:
+    """{"rows": means of every row's metrics over the scenes it did not fail on, "scenes": ...}."""
+    scenes = sorted(scenes, key=lambda record: record["index"])
     names = [k for k in scenes[0] if k != "index"] if scenes else []
     rows = {}
     for name in names:

@@ -1,0 +1,73 @@
+"""`eval-shapes` and `eval-normals` on a tiny generated test split: the tables, the JSON, resuming."""
+
+import json
+import math
+
+import pytest
+
+from lookingglass.data.torch_dataset import TransparentSceneDataset
+from lookingglass.metrics import shape_metrics
+from lookingglass.normals.stage import shipped_weights
+
+from test_cli import run
+
+pytestmark = pytest.mark.skipif(shipped_weights(10)[0] is None or shipped_weights(10, "points")[0] is None,
+                                reason="no 10-view weights ship in this build")
+
+
+@pytest.fixture(scope="module")
+def test_split(tmp_path_factory):
+    root = tmp_path_factory.mktemp("evaluate")
+    run("generate", "--out", root, "--scenes", 2, "--split", "test", "--workers", 1, "--quiet")
+    return root
+
+
+def table_rows(stdout: str) -> dict[str, list[float]]:
+    """{row name: its numbers} of a markdown table printed by an eval command."""
+    rows = {}
+    for line in stdout.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) > 1 and cells[0] and not cells[0].startswith("-"):
+            try:
+                rows[cells[0]] = [float(c) for c in cells[1:]]
+            except ValueError:
+                continue  # the header
+    return rows
+
+
+def test_eval_shapes_scores_writes_json_and_resumes(test_split):
+    out = test_split / "shapes.json"
+    args = ["eval-shapes", "--data", test_split, "--latent-iterations", 0, "--strategies", "RE", "--json", out]
+    first = run(*args, "--max-scenes", 1)
+    rows = table_rows(first.stdout)
+    assert set(rows) == {"vh", "vh+gt-normals", "normals-RE", "pnet-RE"}
+    saved = json.loads(out.read_text())
+    assert [s["index"] for s in saved["scenes"]] == [0] and saved["settings"]["strategies"] == ["RE"]
+    # the hull row is the metric of the stored hull against the stored ground truth
+    gt, hull = TransparentSceneDataset(test_split, "test", views=10).meshes(0)
+    assert saved["rows"]["vh"]["cd"] == pytest.approx(shape_metrics(hull, gt)["cd"], rel=1e-9)
+    # ground-truth normals mapped onto the hull's points: better normals than the hull's own
+    assert saved["rows"]["vh+gt-normals"]["cdn_mean"] < saved["rows"]["vh"]["cdn_mean"]
+    assert all(math.isfinite(v) for r in rows.values() for v in r)
+
+    second = run(*args, "--max-scenes", 2)  # resumes: scene 0 is read back, not redone
+    said = " ".join(second.stderr.split())  # rich wraps long lines
+    assert "resuming from" in said and "1 scene(s) done" in said
+    again = json.loads(out.read_text())
+    assert [s["index"] for s in again["scenes"]] == [0, 1]
+    assert again["scenes"][0] == saved["scenes"][0]
+
+    other = run("eval-shapes", "--data", test_split, "--latent-iterations", 0, "--strategies", "NE", "--json", out,
+                ok=False)
+    assert other.returncode == 2 and "other settings" in other.stderr and "Traceback" not in other.stderr
+
+
+def test_eval_normals_prints_table_1(test_split):
+    proc = run("eval-normals", "--data", test_split, "--weights", f"wr+cv={shipped_weights(10)[0]}",
+               "--max-scenes", 1, "--latent-iterations", 2, "--quiet")
+    rows = table_rows(proc.stdout)
+    assert set(rows) == {"vh", "wr+cv", "wr+cv+op"}
+    for numbers in rows.values():  # N1 median/mean, N2 median/mean (degrees), render error
+        assert len(numbers) == 5 and all(0 < v < 90 for v in numbers[:4]) and numbers[4] > 0
+    bad = run("eval-normals", "--data", test_split, "--weights", "cv=x.safetensors", ok=False)
+    assert bad.returncode == 2 and "VARIANT=PATH" in bad.stderr
