@@ -17,12 +17,23 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
                   help="Reconstruct transparent objects from a few photos under a known environment map.")
 
 
+SURFACE_POINTS_HELP = ("Points on the hull for the surface (default 40 000; more keeps narrower slits and "
+                       "takes longer).")
+
+
+def _surface_points(value: Optional[int]) -> Optional[int]:
+    if value is not None and not 1000 <= value <= 1_000_000:
+        raise LookingGlassError(f"--surface-points must be in [1000, 1000000], got {value}")
+    return value
+
+
 @app.command()
 def reconstruct(
     scene_dir: Path = typer.Argument(..., help="Scene folder with scene.json, images, masks and envmap."),
     out: Path = typer.Option(..., "--out", help="Output folder (must be empty unless --force)."),
     preset: str = typer.Option("cpu", help="Configuration preset: cpu or paper."),
     hull_resolution: Optional[int] = typer.Option(None, help="Voxels along the longest side of the hull box."),
+    surface_points: Optional[int] = typer.Option(None, help=SURFACE_POINTS_HELP),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
     stop_after: str = typer.Option("surface", help="Last stage to run: visual_hull, normals or surface."),
     weights: Optional[Path] = typer.Option(None, help="Normal-network weights (default: the shipped ones)."),
@@ -47,6 +58,8 @@ def reconstruct(
         if not 16 <= hull_resolution <= 1024:
             raise LookingGlassError(f"--hull-resolution must be in [16, 1024], got {hull_resolution}")
         config.hull.resolution = hull_resolution
+    if _surface_points(surface_points) is not None:
+        config.surface.points = surface_points
     reporter = Reporter(quiet=quiet)
     report = run(scene_dir, out, config, force=force, reporter=reporter)
     reporter.info(f"wrote {out / 'mesh.ply'} ({report['total_seconds']:.1f} s)")
@@ -309,6 +322,7 @@ def eval_shapes(
     latent_iterations: int = typer.Option(10, help="Latent-optimization steps per phase (0: skip)."),
     max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
     point_weights: Optional[Path] = typer.Option(None, help="PNet weights: adds a pnet row (default: shipped)."),
+    surface_points: Optional[int] = typer.Option(None, help=SURFACE_POINTS_HELP),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write rows and per-scene metrics as JSON "
                                             "(after every scene; a rerun with the same settings resumes from it)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
@@ -321,6 +335,7 @@ def eval_shapes(
     from .normals.stage import shipped_weights
     from .points.evaluate import evaluate_shapes, markdown_table
     from .points.features import STRATEGIES
+    from .points.stage import SurfaceConfig
     from .progress import Reporter
 
     chosen = tuple(s.strip().upper() for s in strategies.split(",") if s.strip())
@@ -333,7 +348,9 @@ def eval_shapes(
     latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
     dataset = TransparentSceneDataset(data, "test", views=views)
     point_weights = point_weights or shipped_weights(views, "points")[0]
+    surface = SurfaceConfig() if _surface_points(surface_points) is None else SurfaceConfig(points=surface_points)
     settings = {"data": str(Path(data).resolve()), "weights": str(Path(weights).resolve()), "views": views,
+                "surface_points": surface.points,
                 "strategies": list(chosen), "latent_iterations": latent_iterations,
                 "point_weights": str(Path(point_weights).resolve()) if point_weights else None}
     done = []
@@ -350,7 +367,7 @@ def eval_shapes(
     if done:
         reporter.info(f"resuming from {json_out}: {len(done)} scene(s) done")
     save = (lambda partial: write_json(json_out, {"settings": settings, **partial})) if json_out else None
-    result = evaluate_shapes(dataset, weights, chosen, latent, max_scenes=max_scenes, reporter=reporter,
+    result = evaluate_shapes(dataset, weights, chosen, latent, surface, max_scenes=max_scenes, reporter=reporter,
                              point_weights=point_weights, done=done, on_scene=save)
     if save is not None:
         save(result)

@@ -37,12 +37,14 @@ def table_rows(stdout: str) -> dict[str, list[float]]:
 
 def test_eval_shapes_scores_writes_json_and_resumes(test_split):
     out = test_split / "shapes.json"
-    args = ["eval-shapes", "--data", test_split, "--latent-iterations", 0, "--strategies", "RE", "--json", out]
+    args = ["eval-shapes", "--data", test_split, "--latent-iterations", 0, "--strategies", "RE", "--json", out,
+            "--surface-points", 8192]  # fewer than the default 40 000: faster
     first = run(*args, "--max-scenes", 1)
     rows = table_rows(first.stdout)
     assert set(rows) == {"vh", "vh+gt-normals", "normals-RE", "pnet-RE"}
     saved = json.loads(out.read_text())
     assert [s["index"] for s in saved["scenes"]] == [0] and saved["settings"]["strategies"] == ["RE"]
+    assert saved["settings"]["surface_points"] == 8192
     # the hull row is the metric of the stored hull against the stored ground truth
     gt, hull = TransparentSceneDataset(test_split, "test", views=10).meshes(0)
     assert saved["rows"]["vh"]["cd"] == pytest.approx(shape_metrics(hull, gt)["cd"], rel=1e-9)
@@ -57,8 +59,7 @@ def test_eval_shapes_scores_writes_json_and_resumes(test_split):
     assert [s["index"] for s in again["scenes"]] == [0, 1]
     assert again["scenes"][0] == saved["scenes"][0]
 
-    other = run("eval-shapes", "--data", test_split, "--latent-iterations", 0, "--strategies", "NE", "--json", out,
-                ok=False)
+    other = run(*args[:-6], "--strategies", "NE", "--json", out, ok=False)
     assert other.returncode == 2 and "other settings" in other.stderr and "Traceback" not in other.stderr
 
 
@@ -71,3 +72,9 @@ def test_eval_normals_prints_table_1(test_split):
         assert len(numbers) == 5 and all(0 < v < 90 for v in numbers[:4]) and numbers[4] > 0
     bad = run("eval-normals", "--data", test_split, "--weights", "cv=x.safetensors", ok=False)
     assert bad.returncode == 2 and "VARIANT=PATH" in bad.stderr
+
+
+def test_surface_points_out_of_range_is_a_clear_error(test_split):
+    for command in (["eval-shapes", "--data", test_split], ["reconstruct", test_split, "--out", test_split / "o"]):
+        proc = run(*command, "--surface-points", 10, ok=False)
+        assert proc.returncode == 2 and "--surface-points must be in" in proc.stderr and "Traceback" not in proc.stderr
