@@ -18,7 +18,7 @@ pytestmark = pytest.mark.skipif(shipped_weights(10)[0] is None or shipped_weight
 @pytest.fixture(scope="module")
 def test_split(tmp_path_factory):
     root = tmp_path_factory.mktemp("evaluate")
-    run("generate", "--out", root, "--scenes", 2, "--split", "test", "--workers", 1, "--quiet")
+    run("generate", "--out", root, "--scenes", 1, "--split", "test", "--workers", 1, "--quiet")
     return root
 
 
@@ -39,7 +39,7 @@ def test_eval_shapes_scores_writes_json_and_resumes(test_split):
     out = test_split / "shapes.json"
     args = ["eval-shapes", "--data", test_split, "--latent-iterations", 0, "--strategies", "RE", "--json", out,
             "--surface-points", 8192]  # fewer than the default 40 000: faster
-    first = run(*args, "--max-scenes", 1)
+    first = run(*args)
     rows = table_rows(first.stdout)
     assert set(rows) == {"vh", "vh+gt-normals", "normals-RE", "pnet-RE"}
     saved = json.loads(out.read_text())
@@ -52,12 +52,16 @@ def test_eval_shapes_scores_writes_json_and_resumes(test_split):
     assert saved["rows"]["vh+gt-normals"]["cdn_mean"] < saved["rows"]["vh"]["cdn_mean"]
     assert all(math.isfinite(v) for r in rows.values() for v in r)
 
-    second = run(*args, "--max-scenes", 2)  # resumes: scene 0 is read back, not redone
+    # resuming: scene 0 (the split's only one) is read back, not redone; a marked value proves it
+    marked = json.loads(out.read_text())
+    marked["scenes"][0]["vh"]["cd"] = 123.0
+    out.write_text(json.dumps(marked))
+    second = run(*args)
     said = " ".join(second.stderr.split())  # rich wraps long lines
     assert "resuming from" in said and "1 scene(s) done" in said
     again = json.loads(out.read_text())
-    assert [s["index"] for s in again["scenes"]] == [0, 1]
-    assert again["scenes"][0] == saved["scenes"][0]
+    assert again["scenes"] == marked["scenes"] and again["rows"]["vh"]["cd"] == 123.0
+    assert table_rows(second.stdout)["vh"][0] == 123.0 and table_rows(second.stdout)["pnet-RE"] == rows["pnet-RE"]
 
     other = run(*args[:-6], "--strategies", "NE", "--json", out, ok=False)
     assert other.returncode == 2 and "other settings" in other.stderr and "Traceback" not in other.stderr
