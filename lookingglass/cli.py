@@ -276,10 +276,10 @@ def train_points(
     import dataclasses
 
     base = point_train_preset(preset)
+    # dataclasses.replace re-runs __post_init__, which checks loss and strategy
     config = dataclasses.replace(base, loss=loss, strategy=strategy, seed=seed, max_scenes=max_scenes,
                                  epochs=base.epochs if epochs is None else epochs,
                                  lr_halve_epochs=base.lr_halve_epochs if lr_halve_epochs is None else lr_halve_epochs)
-    # (replace re-runs __post_init__, which checks loss and strategy)
     views = load_weights(normals).cfg.num_views
     dataset = TransparentSceneDataset(data, "train", views=views, augment=False)
     run(dataset, out, config, normals, device=resolve_device(device), reporter=Reporter(quiet=quiet),

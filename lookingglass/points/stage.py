@@ -30,7 +30,8 @@ class SurfaceConfig:
     size); strategy: AV, NE or RE (feature mapping); depth: Poisson octree depth (8: 1/128 of the
     unit sphere's box, about the hull's 128^3 voxel); point_weight, samples_per_node: screened
     Poisson's; smoothing_neighbours: PNet's offsets and normals are averaged over this many
-    nearest points (0 or 1: not at all), see `smooth_over_neighbours`; seed: point sampling; point_weights: PNet weights ("" = the shipped ones, if any).
+    nearest points (0 or 1: not at all), see `smooth_over_neighbours`; seed: point sampling;
+    point_weights: PNet weights ("" = the shipped ones, if any).
 
     Why 40 000 points: where two parts of the hull face each other across a slit narrower than
     the point spacing (a handle close to the body), Poisson fuses them and the slit's walls vanish.
