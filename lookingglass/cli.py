@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import typer
 from rich.console import Console
@@ -212,6 +212,13 @@ def generate(
                   f"({summary['seconds']:.1f} s, {summary['workers']} worker(s){rate})")
 
 
+def _with_overrides(config: Any, **values: Any) -> Any:
+    """The preset `config` with the options the user gave (None: keep the preset's value)."""
+    import dataclasses
+
+    return dataclasses.replace(config, **{k: v for k, v in values.items() if v is not None})
+
+
 @app.command("train-normals")
 def train_normals(
     data: Path = typer.Option(..., "--data", help="Dataset folder made by `generate` (uses DATA/train)."),
@@ -220,8 +227,11 @@ def train_normals(
     preset: str = typer.Option("cpu", help="cpu or paper network sizes and schedule."),
     variant: str = typer.Option("wr+cv", help="basic, wr or wr+cv (the paper's ablations)."),
     epochs: Optional[int] = typer.Option(None, help="Override the preset's epochs."),
+    lr: Optional[float] = typer.Option(None, help="Override the preset's initial learning rate."),
     lr_halve_epochs: Optional[int] = typer.Option(None, help="Override the preset's learning-rate halving period "
                                                              "(epochs)."),
+    init: str = typer.Option("", help="Start from these weights.safetensors (fine-tuning; same network config) "
+                                      "instead of a random initialization."),
     max_scenes: int = typer.Option(0, help="Use only the first N scenes (0: all)."),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
     seed: int = typer.Option(0, help="Initialization and shuffling seed."),
@@ -235,13 +245,9 @@ def train_normals(
 
     if variant not in VARIANTS:
         raise LookingGlassError(f"--variant must be one of {', '.join(VARIANTS)}, got {variant!r}")
-    config = train_preset(preset, views)
+    config = _with_overrides(train_preset(preset, views), seed=seed, max_scenes=max_scenes, epochs=epochs, lr=lr,
+                             lr_halve_epochs=lr_halve_epochs, init=init)
     config.net.use_error_map, config.net.use_cost_volume = VARIANTS[variant]
-    config.seed, config.max_scenes = seed, max_scenes
-    if epochs is not None:
-        config.epochs = epochs
-    if lr_halve_epochs is not None:
-        config.lr_halve_epochs = lr_halve_epochs
     dataset = TransparentSceneDataset(data, "train", views=views, augment=True, seed=seed)
     # The network runs at the data's resolution (the dataset preset matches the network preset).
     config.net.width, config.net.height = dataset.config.width, dataset.config.height
@@ -257,8 +263,11 @@ def train_points(
     loss: str = typer.Option("chamfer", help="chamfer (the paper's best), nearest or view."),
     strategy: str = typer.Option("RE", help="Feature mapping: RE (the paper's best), NE or AV."),
     epochs: Optional[int] = typer.Option(None, help="Override the preset's epochs."),
+    lr: Optional[float] = typer.Option(None, help="Override the preset's initial learning rate."),
     lr_halve_epochs: Optional[int] = typer.Option(None, help="Override the preset's learning-rate halving period "
                                                              "(epochs)."),
+    init: str = typer.Option("", help="Start from these weights.safetensors (fine-tuning; same network config) "
+                                      "instead of a random initialization."),
     max_scenes: int = typer.Option(0, help="Use only the first N scenes (0: all)."),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
     seed: int = typer.Option(0, help="Initialization, shuffling and point-sampling seed."),
@@ -273,13 +282,9 @@ def train_points(
     from .points.train import point_train_preset, train_points as run
     from .progress import Reporter
 
-    import dataclasses
-
-    base = point_train_preset(preset)
     # dataclasses.replace re-runs __post_init__, which checks loss and strategy
-    config = dataclasses.replace(base, loss=loss, strategy=strategy, seed=seed, max_scenes=max_scenes,
-                                 epochs=base.epochs if epochs is None else epochs,
-                                 lr_halve_epochs=base.lr_halve_epochs if lr_halve_epochs is None else lr_halve_epochs)
+    config = _with_overrides(point_train_preset(preset), loss=loss, strategy=strategy, seed=seed,
+                             max_scenes=max_scenes, epochs=epochs, lr=lr, lr_halve_epochs=lr_halve_epochs, init=init)
     views = load_weights(normals).cfg.num_views
     dataset = TransparentSceneDataset(data, "train", views=views, augment=False)
     run(dataset, out, config, normals, device=resolve_device(device), reporter=Reporter(quiet=quiet),

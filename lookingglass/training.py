@@ -44,7 +44,7 @@ from torch import Tensor, nn
 
 from .configio import config_from_dict
 from .errors import LookingGlassError
-from .fileio import write_atomic, write_json
+from .fileio import sha256_file, write_atomic, write_json
 from .progress import Reporter
 
 __all__ = [
@@ -71,6 +71,8 @@ class Schedule(Protocol):
     checkpoint_every: int
     seed: int
     max_scenes: int
+    init: str  # weights.safetensors to start from (fine-tuning); "" for a random start
+    net: Any  # the network's config dataclass (--init weights must have been made with the same)
 
 
 class StepFn(Protocol):
@@ -153,6 +155,37 @@ def load_weights(path: str | os.PathLike, config_cls: type, net_cls: Callable[[A
     return net.eval(), meta
 
 
+def check_initial_weights(path: str | os.PathLike, net_config: Any) -> None:
+    """Refuse --init weights that are missing or made for another network config (checked
+    before a trainer spends time on anything else)."""
+    path = Path(path)
+    meta_path = path.with_suffix(".json")
+    for p in (path, meta_path):
+        if not p.exists():
+            raise LookingGlassError("--init weights not found" if p == path else
+                                    "network config not found beside the --init weights", p)
+    try:
+        saved = json.loads(meta_path.read_text()).get("net") or {}
+    except (ValueError, AttributeError) as exc:
+        raise LookingGlassError(f"cannot read the network config ({exc})", meta_path) from None
+    wanted = json.loads(json.dumps(dataclasses.asdict(net_config)))
+    if saved != wanted:
+        changed = sorted(k for k in set(saved) | set(wanted) if saved.get(k) != wanted.get(k))
+        raise LookingGlassError(f"the --init weights are for another network (differs in {', '.join(changed)})",
+                                meta_path)
+
+
+def load_initial_weights(net: nn.Module, path: str | os.PathLike) -> str:
+    """Load --init weights into `net` (checked first); returns the file's SHA-256, which the new
+    weights.json records."""
+    check_initial_weights(path, net.cfg)
+    try:
+        net.load_state_dict(load_file(str(path)))
+    except Exception as exc:
+        raise LookingGlassError(f"cannot load the --init weights ({exc})", path) from None
+    return sha256_file(path)
+
+
 def dist_info() -> tuple[int, int]:
     """(rank, world size); (0, 1) outside a process group."""
     if dist.is_available() and dist.is_initialized():
@@ -182,7 +215,8 @@ class TrainingSession:
     config.json, and runs the loop (`fit`). Work a trainer does before the loop (e.g. caching
     inputs) can use `rank` / `world` to split itself and `barrier()` to wait for the others.
 
-    config: a dataclass with the `Schedule` fields (all of it is saved and compared).
+    config: a dataclass with the `Schedule` fields and `net`, the network's config (all of it is
+    saved and compared).
     device: "cpu", "cuda" or "cuda:N". reporter: progress and messages (rank 0 only).
     """
 
@@ -200,6 +234,8 @@ class TrainingSession:
             self.reporter = Reporter(quiet=True)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self._check_config()
+        if config.init:
+            check_initial_weights(config.init, config.net)
 
     def _check_config(self) -> None:
         record_or_compare(self.run_dir / "config.json", dataclasses.asdict(self.config), self.rank,
@@ -227,6 +263,9 @@ class TrainingSession:
         opt = torch.optim.Adam(net.parameters(), lr=config.lr)
         done, start_epoch = 0, 0
         ckpt_path = self.run_dir / "checkpoint.pt"
+        init_sha = load_initial_weights(net, config.init) if config.init else None
+        if init_sha:
+            reporter.info(f"starting from {config.init}")
         if ckpt_path.exists():
             ckpt = load_checkpoint(ckpt_path)
             try:
@@ -280,7 +319,10 @@ class TrainingSession:
             if stopped:
                 break
         if rank == 0:
-            save_weights(self.run_dir, net, weights_extra(done) if weights_extra else {"steps": done})
+            extra = weights_extra(done) if weights_extra else {"steps": done}
+            if init_sha:
+                extra["init_sha256"] = init_sha
+            save_weights(self.run_dir, net, extra)
         self.barrier()
         return metrics
 

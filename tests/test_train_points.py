@@ -2,6 +2,8 @@
 exact, weights load back, another config in the same folder is refused, and the CLI runs.
 (The shared loop's torchrun path is covered by tests/test_train_normals.py.)"""
 
+import dataclasses
+import hashlib
 import json
 import os
 import shutil
@@ -90,6 +92,37 @@ def test_resume_after_interruption_is_exact(tiny, tmp_path):
     b = load_point_weights(tmp_path / "part" / "weights.safetensors").state_dict()
     for k in a:
         torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-7)
+
+
+def test_init_starts_from_given_weights(tiny, tmp_path):
+    """--init: a run starts from another run's weights (lr 0 keeps them exactly), records their
+    SHA-256, and refuses weights of another network."""
+    data, normals = tiny
+    ds = TransparentSceneDataset(data, "train", augment=False)
+    base = tmp_path / "base"
+    train_points(ds, base, _config(epochs=2), normals)
+    init = base / "weights.safetensors"
+    shutil.copytree(base / "features", tmp_path / "tuned" / "features")
+    tuned = dataclasses.replace(_config(epochs=1), lr=0.0, init=str(init))
+    train_points(ds, tmp_path / "tuned", tuned, normals)
+    a = load_point_weights(init).state_dict()
+    b = load_point_weights(tmp_path / "tuned" / "weights.safetensors").state_dict()
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
+    meta = json.loads((tmp_path / "tuned" / "weights.json").read_text())
+    assert meta["init_sha256"] == hashlib.sha256(init.read_bytes()).hexdigest()
+    # Starting from them at a working rate continues below where the base run ended.
+    shutil.copytree(base / "features", tmp_path / "more" / "features")
+    train_points(ds, tmp_path / "more", dataclasses.replace(_config(epochs=1), init=str(init)), normals)
+    assert _log(tmp_path / "more")[0]["loss"] < _log(base)[0]["loss"]
+
+    other = dataclasses.replace(_config(epochs=1), init=str(init))
+    other.net = dataclasses.replace(other.net, sa_mlps=((8, 8), (32, 32)))
+    with pytest.raises(LookingGlassError, match="another network .*sa_mlps"):
+        train_points(ds, tmp_path / "other", other, normals)
+    with pytest.raises(LookingGlassError, match="--init weights not found"):
+        train_points(ds, tmp_path / "missing", dataclasses.replace(_config(epochs=1), init=str(tmp_path / "x.safetensors")),
+                     normals)
 
 
 def test_view_loss_targets(tiny, tmp_path):

@@ -40,6 +40,7 @@ class TrainConfig:
     augment: bool = True
     max_scenes: int = 0  # 0: all
     views_per_step: int = 0  # 0: every view of the scene; k: k random views (views are independent images)
+    init: str = ""  # weights to fine-tune from ("" : random start)
 
 
 # The paper's ablations (Table 1): (use_error_map, use_cost_volume).

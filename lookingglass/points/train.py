@@ -39,7 +39,6 @@ weights.safetensors + weights.json (the PointNetConfig, the loss and the strateg
 
 from __future__ import annotations
 
-import hashlib
 import os
 import time
 from dataclasses import dataclass, field
@@ -53,7 +52,7 @@ from torch import Tensor
 
 from .. import training
 from ..errors import LookingGlassError
-from ..fileio import write_atomic
+from ..fileio import sha256_file, write_atomic
 from ..normals.model import NormalNet
 from ..normals.render_layer import prediction_error_maps
 from ..normals.train import load_weights, scene_tensors
@@ -103,6 +102,7 @@ class PointTrainConfig:
     seed: int = 0
     max_scenes: int = 0
     ior: float = 1.4723
+    init: str = ""  # weights to fine-tune from ("" : random start)
 
     def __post_init__(self) -> None:
         self.strategy = str(self.strategy).upper()
@@ -206,17 +206,9 @@ def load_scene_arrays(path: Path, loss: str) -> dict[str, np.ndarray]:
                                 path) from None
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def _check_source(run_dir: Path, normals: Path, views: int, rank: int) -> str:
     """Record (or compare) the normal weights the cache is made from; returns their SHA-256."""
-    digest = _sha256(normals)
+    digest = sha256_file(normals)
     source = {"normals_sha256": digest, "views": views}
     training.record_or_compare(run_dir / FEATURE_DIR / "source.json", source, rank,
                                "the cached point features were made with other normal weights or views",
