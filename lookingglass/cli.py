@@ -144,6 +144,7 @@ def demo(
     views: int = typer.Option(10, help="5, 10 or 20 views."),
     size: tuple[int, int] = typer.Option((240, 180), "--size", help="Image size W H."),
     force: bool = typer.Option(False, "--force", help="Overwrite a non-empty output folder."),
+    device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Make a glass object, render it under a procedural environment, reconstruct and score it."""
@@ -169,7 +170,9 @@ def demo(
         env = procedural_envmap(np.random.default_rng(seed), 256)
         cameras = paper_rig(views, seed, width=size[0], height=size[1])
         render_capture(shape, env, cameras, out / "scene", overwrite=True)
-    report = run(out / "scene", out / "result", make_preset("cpu"), force=True, reporter=reporter)
+    config = make_preset("cpu")
+    config.device = device
+    report = run(out / "scene", out / "result", config, force=True, reporter=reporter)
     mesh = load_mesh(out / "result" / "mesh.ply")
     scores = shape_metrics(mesh, shape)
     write_json(out / "scores.json", {"mesh_from": report["mesh_from"], **scores})
@@ -212,6 +215,13 @@ def generate(
                   f"({summary['seconds']:.1f} s, {summary['workers']} worker(s){rate})")
 
 
+def _device(name: str) -> str:
+    """--device resolved ('auto': cuda when present); imported late, as the CLI's other modules."""
+    from .config import resolve_device
+
+    return resolve_device(name)
+
+
 def _with_overrides(config: Any, **values: Any) -> Any:
     """The preset `config` with the options the user gave (None: keep the preset's value)."""
     import dataclasses
@@ -238,7 +248,6 @@ def train_normals(
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Train the normal network (resumes from OUT/checkpoint.pt; runs under torchrun for DDP)."""
-    from .config import resolve_device
     from .data.torch_dataset import TransparentSceneDataset
     from .normals.train import VARIANTS, train_normals as run, train_preset
     from .progress import Reporter
@@ -251,7 +260,7 @@ def train_normals(
     dataset = TransparentSceneDataset(data, "train", views=views, augment=True, seed=seed)
     # The network runs at the data's resolution (the dataset preset matches the network preset).
     config.net.width, config.net.height = dataset.config.width, dataset.config.height
-    run(dataset, out, config, device=resolve_device(device), reporter=Reporter(quiet=quiet))
+    run(dataset, out, config, device=_device(device), reporter=Reporter(quiet=quiet))
 
 
 @app.command("train-points")
@@ -276,7 +285,6 @@ def train_points(
 ) -> None:
     """Train the point network on normal-net features (cached in OUT/features; resumes from
     OUT/checkpoint.pt; runs under torchrun for DDP)."""
-    from .config import resolve_device
     from .data.torch_dataset import TransparentSceneDataset
     from .normals.train import load_weights
     from .points.train import point_train_preset, train_points as run
@@ -287,7 +295,7 @@ def train_points(
                              max_scenes=max_scenes, epochs=epochs, lr=lr, lr_halve_epochs=lr_halve_epochs, init=init)
     views = load_weights(normals).cfg.num_views
     dataset = TransparentSceneDataset(data, "train", views=views, augment=False)
-    run(dataset, out, config, normals, device=resolve_device(device), reporter=Reporter(quiet=quiet),
+    run(dataset, out, config, normals, device=_device(device), reporter=Reporter(quiet=quiet),
         threads=threads)
 
 
@@ -298,6 +306,7 @@ def eval_normals(
     views: int = typer.Option(10, help="Views per scene."),
     latent_iterations: int = typer.Option(10, help="Latent-optimization steps per phase for wr+cv+op (0: skip)."),
     max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
+    device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Print the paper's Table 1 (N1/N2 angle errors, render error) on the test split as markdown."""
@@ -314,7 +323,7 @@ def eval_normals(
         paths[name] = Path(path)
     latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
     dataset = TransparentSceneDataset(data, "test", views=views)
-    results = evaluate_normals(dataset, paths, latent, max_scenes, Reporter(quiet=quiet))
+    results = evaluate_normals(dataset, paths, latent, max_scenes, Reporter(quiet=quiet), _device(device))
     print(markdown_table(results))
 
 
@@ -330,6 +339,7 @@ def eval_shapes(
     surface_points: Optional[int] = typer.Option(None, help=SURFACE_POINTS_HELP),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write rows and per-scene metrics as JSON "
                                             "(after every scene; a rerun with the same settings resumes from it)."),
+    device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Print the paper's Table 2/3 (CD, CDN-mean, CDN-med, Metro) for the hull and the surfaces made
@@ -373,7 +383,7 @@ def eval_shapes(
         reporter.info(f"resuming from {json_out}: {len(done)} scene(s) done")
     save = (lambda partial: write_json(json_out, {"settings": settings, **partial})) if json_out else None
     result = evaluate_shapes(dataset, weights, chosen, latent, surface, max_scenes=max_scenes, reporter=reporter,
-                             point_weights=point_weights, done=done, on_scene=save)
+                             point_weights=point_weights, done=done, on_scene=save, device=_device(device))
     if save is not None:
         save(result)
     print(markdown_table(result["rows"]))

@@ -17,6 +17,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+import torch
 import trimesh
 
 from . import __version__
@@ -116,7 +117,7 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
         else:
             with reporter.stage("normals", "normals (network + latent optimization)") as rec:
                 normals = run_normal_stage(capture.images, capture.masks, capture.envmap, capture.cameras,
-                                           hull.mesh, capture.ior, out_dir, config.normals, weights)
+                                           hull.mesh, capture.ior, out_dir, config.normals, weights, device)
                 rec.update(normals.report)
                 rec["trained_views"] = trained_views
                 if trained_views != requested_views:
@@ -125,7 +126,7 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
         if normals is not None and "surface" in wanted:
             point_weights = Path(config.surface.point_weights) if config.surface.point_weights \
                 else shipped_weights(trained_views, "points")[0]
-            point_net = load_point_weights(point_weights) if point_weights is not None else None
+            point_net = load_point_weights(point_weights).to(device) if point_weights is not None else None
             with reporter.stage("surface", "surface (feature mapping + PNet + Poisson)") as rec:
                 mesh, oriented = surface_from_normals(hull.mesh, hull.center, hull.scale, normals.cameras,
                                                       normals.n1, normals.error, normals.tir, normals.mask,
@@ -153,6 +154,8 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
         "warnings": messages,
         "total_seconds": round(time.perf_counter() - start, 3),
         "peak_memory_mb": round(peak_memory_mb(), 1),
+        **({"gpu_peak_memory_mb": round(torch.cuda.max_memory_allocated(device) / 2**20, 1)}
+           if device.startswith("cuda") else {}),
         "versions": versions(),
         "config": config_to_dict(config),
     }

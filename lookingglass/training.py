@@ -226,6 +226,9 @@ class TrainingSession:
         self.config = config
         self.device = device
         self.ddp = "WORLD_SIZE" in os.environ and int(os.environ["WORLD_SIZE"]) > 1
+        if self.ddp and device == "cuda":  # one GPU per process, as torchrun numbers them on each machine
+            self.device = device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}"
+            torch.cuda.set_device(self.device)
         if self.ddp and not dist.is_initialized():
             dist.init_process_group("nccl" if device.startswith("cuda") else "gloo")
         self.rank, self.world = dist_info()

@@ -26,7 +26,7 @@ def _angles(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> np.ndarray:
     """Angles in degrees between (V,3,H,W) normal maps over mask (V,H,W)."""
     a = torch.nn.functional.normalize(a, dim=1).permute(0, 2, 3, 1)[mask]
     b = torch.nn.functional.normalize(b, dim=1).permute(0, 2, 3, 1)[mask]
-    return torch.rad2deg(torch.atan2(torch.linalg.cross(a, b, dim=-1).norm(dim=-1), (a * b).sum(-1))).numpy()
+    return torch.rad2deg(torch.atan2(torch.linalg.cross(a, b, dim=-1).norm(dim=-1), (a * b).sum(-1))).cpu().numpy()
 
 
 @dataclass
@@ -55,13 +55,13 @@ class NormalErrors:
 
 
 def evaluate_normals(dataset, weights: dict[str, Path], latent: LatentOptConfig | None = None,
-                     max_scenes: int = 0, reporter: Reporter | None = None) -> dict[str, dict]:
+                     max_scenes: int = 0, reporter: Reporter | None = None, device: str = "cpu") -> dict[str, dict]:
     """Rows of Table 1. weights maps a variant name (basic, wr, wr+cv) to its weights file;
-    `wr+cv+op` is added when wr+cv is given and `latent` is not None."""
+    `wr+cv+op` is added when wr+cv is given and `latent` is not None. Runs on `device`."""
     import time
 
     reporter = reporter or Reporter(quiet=True)
-    nets = {name: load_weights(path) for name, path in weights.items()}
+    nets = {name: load_weights(path).to(device) for name, path in weights.items()}
     rows = {"vh": NormalErrors(), **{name: NormalErrors() for name in nets}}
     if "wr+cv" in nets and latent is not None:
         rows["wr+cv+op"] = NormalErrors()
@@ -70,7 +70,7 @@ def evaluate_normals(dataset, weights: dict[str, Path], latent: LatentOptConfig 
         sample = dataset[i]
         base = None
         for name, net in nets.items():
-            t = scene_tensors(sample, net.cfg, 1.4723)
+            t = scene_tensors(sample, net.cfg, 1.4723, device)
             base = base or t
             start = time.perf_counter()
             with torch.no_grad():
@@ -84,9 +84,9 @@ def evaluate_normals(dataset, weights: dict[str, Path], latent: LatentOptConfig 
         if base is None:
             from .model import NormalNetConfig
 
-            base = scene_tensors(sample, NormalNetConfig(use_error_map=False, use_cost_volume=False), 1.4723)
-        vh1 = sample["vh_n1"].float() * base["mask"].unsqueeze(1)
-        rows["vh"].add(vh1, sample["vh_n2"].float(), base)
+            base = scene_tensors(sample, NormalNetConfig(use_error_map=False, use_cost_volume=False), 1.4723, device)
+        vh1 = sample["vh_n1"].to(device).float() * base["mask"].unsqueeze(1)
+        rows["vh"].add(vh1, sample["vh_n2"].to(device).float(), base)
     return {name: {**row.summary(), "seconds_per_scene": row.seconds / max(n, 1)} for name, row in rows.items()}
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 import torch.nn.functional as F
 import trimesh
 from torch import Tensor
@@ -75,14 +76,16 @@ def hull_error_maps(envmap: EnvironmentMap, image: Tensor, mask: Tensor, vh_n1: 
 
 def prepare_inputs(images: Tensor, masks: Tensor, envmap: Tensor, cameras: Cameras, hull: trimesh.Trimesh,
                    width: int, height: int, envmap_height: int, ior: float, target_mean: float = 0.5,
-                   ) -> NormalInputs:
+                   device: str | torch.device = "cpu") -> NormalInputs:
     """images (V,H0,W0,3) linear; masks (V,H0,W0) bool; envmap (He,2He,3) linear in the images'
-    units; cameras at H0 x W0 and `hull` in the same (world) frame."""
+    units; cameras at H0 x W0 and `hull` in the same (world) frame. The result lives on `device`
+    (the hull's rays are cast on the CPU either way)."""
+    images, masks, envmap = images.to(device), masks.to(device), envmap.to(device)
     factor = exposure_factor(images, target_mean)
     image = resize_images(images.float() * factor, width, height).clamp(0, 1)
     mask = resize_masks(masks, width, height)
-    cams = cameras.with_resolution(width, height)
+    cams = cameras.with_resolution(width, height).to(device)
     env = EnvironmentMap(envmap.float() * factor).resized(envmap_height)
-    tb = trace_two_bounce(hull, cams, ior=ior)
+    tb = trace_two_bounce(hull, cams, ior=ior, device=device)
     vh_error, vh_tir = hull_error_maps(env, image, mask, tb.normal1, tb.normal2, cams, ior)
     return NormalInputs(image, mask, env, cams, tb.normal1, tb.normal2, tb.valid, vh_error, vh_tir, factor)

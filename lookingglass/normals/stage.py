@@ -79,25 +79,28 @@ class NormalStageResult:
 
 
 def run_normal_stage(images: np.ndarray, masks: np.ndarray, envmap: np.ndarray, cameras, hull: trimesh.Trimesh,
-                     ior: float, out_dir: Path, config: NormalStageConfig, weights_path: Path) -> NormalStageResult:
-    net = load_weights(weights_path)
+                     ior: float, out_dir: Path, config: NormalStageConfig, weights_path: Path,
+                     device: str = "cpu") -> NormalStageResult:
+    """The networks and the rendering layer run on `device`; the result is on the CPU."""
+    net = load_weights(weights_path).to(device)
     meta = json.loads(weights_path.with_suffix(".json").read_text())
     x = prepare_inputs(torch.from_numpy(images), torch.from_numpy(masks), torch.from_numpy(envmap), cameras, hull,
-                       net.cfg.width, net.cfg.height, int(meta.get("envmap_height", 128)), ior)
+                       net.cfg.width, net.cfg.height, int(meta.get("envmap_height", 128)), ior, device=device)
     n1, n2 = predict_normals(net, x, config.latent, ior)
-    m = x.mask
-    err_vh, _, _ = prediction_error_maps(x.envmap, x.vh_n1, x.vh_n2, x.cameras, x.image, m, ior)
-    err_pred, tir, pred_render = prediction_error_maps(x.envmap, n1, n2, x.cameras, x.image, m, ior)
+    err_vh, _, _ = prediction_error_maps(x.envmap, x.vh_n1, x.vh_n2, x.cameras, x.image, x.mask, ior)
+    err_pred, tir, pred_render = prediction_error_maps(x.envmap, n1, n2, x.cameras, x.image, x.mask, ior)
+    n1, n2, m, tir, err_vh, err_pred = (t.cpu() for t in (n1, n2, x.mask, tir, err_vh, err_pred))
+    image, vh_n1, rendered = x.image.cpu(), x.vh_n1.cpu(), pred_render.image.cpu()
     folder = out_dir / "normals"
     folder.mkdir(parents=True, exist_ok=True)
     for v in range(len(m)):
         arrays = dict(n1=n1[v].numpy(), n2=n2[v].numpy(), mask=m[v].numpy(), tir=tir[v].numpy(),
                       render_error=err_pred[v].numpy())
         write_atomic(folder / f"view_{v:02d}.npz", lambda p, a=arrays: np.savez_compressed(p, **a))
-        panels = [tonemap(x.image[v].numpy()), normal_map_rgb(x.vh_n1[v].numpy(), m[v].numpy()),
+        panels = [tonemap(image[v].numpy()), normal_map_rgb(vh_n1[v].numpy(), m[v].numpy()),
                   normal_map_rgb(n1[v].numpy(), m[v].numpy()),
                   # the re-rendering inside the mask, the photo around it (off the mask there are no normals)
-                  tonemap(torch.where(m[v, ..., None], comparable(pred_render.image[v]), x.image[v]).numpy())]
+                  tonemap(torch.where(m[v, ..., None], comparable(rendered[v]), image[v]).numpy())]
         gap = np.ones((panels[0].shape[0], 3, 3), np.float32)
         write_image(folder / f"view_{v:02d}.png", np.concatenate([panels[0], gap, panels[1], gap, panels[2], gap,
                                                                   panels[3]], axis=1), encoding="linear")
@@ -105,4 +108,4 @@ def run_normal_stage(images: np.ndarray, masks: np.ndarray, envmap: np.ndarray, 
     report = {"weights": str(weights_path), "network_size": [net.cfg.width, net.cfg.height],
               "render_error_vh": float(err_vh[m].sum()) / count, "render_error": float(err_pred[m].sum()) / count,
               "latent_iterations": [config.latent.iterations_n2, config.latent.iterations_both]}
-    return NormalStageResult(report, x.cameras, n1, err_pred, tir, m)
+    return NormalStageResult(report, x.cameras.to("cpu"), n1, err_pred, tir, m)

@@ -129,6 +129,7 @@ def train_normals(dataset, run_dir: str | os.PathLike, config: TrainConfig, devi
     last epoch's metrics.
     """
     session = training.TrainingSession(run_dir, config, device, reporter)
+    device = session.device  # under torchrun on GPUs: this process's own
 
     def step(model: torch.nn.Module, index: int, global_step: int) -> tuple[Tensor, dict[str, float]]:
         sample = select_views(dataset[index], config.views_per_step,

@@ -34,7 +34,7 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
                     latent: LatentOptConfig | None = None, surface: SurfaceConfig | None = None,
                     max_scenes: int = 0, reporter: Reporter | None = None,
                     point_weights: Path | None = None, done: list[dict] | None = None,
-                    on_scene: Callable[[dict], None] | None = None) -> dict:
+                    on_scene: Callable[[dict], None] | None = None, device: str = "cpu") -> dict:
     """Returns {"rows": {name: {metric: mean}}, "scenes": [{"index", name: {metric}}...]}.
 
     done: scene records of an earlier, interrupted run with the same settings (their scenes are
@@ -42,11 +42,12 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
 
     dataset: a TransparentSceneDataset (test split, not augmented). Surfaces are made in each
     scene's hull-normalized frame (PNet's, from meta.json) and scored against the GT in its own
-    unit-sphere frame."""
+    unit-sphere frame. The networks and the rendering layer run on `device`; feature mapping and
+    Poisson on the CPU."""
     reporter = reporter or Reporter(quiet=True)
     surface = surface or SurfaceConfig()
-    net = load_weights(weights) if weights is not None else None
-    point_net = load_point_weights(point_weights) if point_weights is not None else None
+    net = load_weights(weights).to(device) if weights is not None else None
+    point_net = load_point_weights(point_weights).to(device) if point_weights is not None else None
     point_strategy = "RE"
     if point_weights is not None:  # PNet is evaluated with the mapping it was trained on
         point_strategy = json.loads(Path(point_weights).with_suffix(".json").read_text()).get("strategy", "RE")
@@ -56,7 +57,7 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
     for i in reporter.track([i for i in range(n) if i not in finished], description="test scenes"):
         sample = dataset[i]
         gt, hull = dataset.meshes(i)
-        t = scene_tensors(sample, net.cfg if net is not None else _plain_config(), 1.4723)
+        t = scene_tensors(sample, net.cfg if net is not None else _plain_config(), 1.4723, device)
         cams, mask = t["cameras"], t["mask"]
         record = {"index": i, "vh": shape_metrics(hull, gt)}
         maps = {"vh+gt-normals": (t["n1"], None)}
@@ -71,15 +72,16 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
         for name, (n1, n2) in maps.items():
             n1_hw = n1.permute(0, 2, 3, 1)
             if n2 is None:  # GT: its own rendering error is the renderer's residual, take it as 0
-                error, tir = torch.zeros(mask.shape), sample["tir"].bool() & mask
+                error, tir = torch.zeros(mask.shape, device=mask.device), sample["tir"].to(device).bool() & mask
             else:
                 error, tir, _ = prediction_error_maps(t["envmap"], n1_hw, n2.permute(0, 2, 3, 1), cams, t["image"],
                                                       mask)
             runs = [(f"normals-{s}", s, None) for s in strategies] if name == "normals" else [(name, strategies[0], None)]
             if name == "normals" and point_net is not None:
                 runs.append((f"pnet-{point_strategy}", point_strategy, point_net))
+            maps_cpu = [x.cpu() for x in (n1_hw, error, tir, mask)]
             for row, strategy, pnet in runs:
-                record[row] = _surface_metrics(hull, gt, dataset.meta(i)["hull"], cams, n1_hw, error, tir, mask,
+                record[row] = _surface_metrics(hull, gt, dataset.meta(i)["hull"], cams.to("cpu"), *maps_cpu,
                                                dataclasses.replace(surface, strategy=strategy), pnet)
         scenes.append(record)
         if on_scene is not None:

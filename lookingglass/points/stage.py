@@ -86,8 +86,10 @@ def map_normals_to_hull(hull_mesh: trimesh.Trimesh, cameras: Cameras, n1: torch.
     clouds = [sample_hull_points(hull_mesh, size, config.seed + k) for k in range(-(-config.points // size))]
     points, hull_normals = np.concatenate([c[0] for c in clouds]), np.concatenate([c[1] for c in clouds])
     mapped = map_features(points, hull_normals, hull_mesh, cameras, n1, error, tir, mask, config.strategy)
+    device = next(point_net.parameters()).device  # PNet runs where it lives; mapping stays on the CPU
     with torch.no_grad():
-        refined, normals = point_net.refine(mapped["features"].reshape(len(clouds), size, -1))
+        refined, normals = point_net.refine(mapped["features"].reshape(len(clouds), size, -1).to(device))
+    refined, normals = refined.cpu(), normals.cpu()
     offsets = refined.reshape(-1, 3).numpy() - points
     offsets, normals = smooth_over_neighbours(points, [offsets, normals.reshape(-1, 3).numpy()],
                                               config.smoothing_neighbours)

@@ -292,6 +292,7 @@ def train_points(dataset, run_dir: str | os.PathLike, config: PointTrainConfig, 
     normals = Path(normals)
     run_dir = Path(run_dir)
     session = training.TrainingSession(run_dir, config, device, reporter)  # refuses another config first
+    device = session.device  # under torchrun on GPUs: this process's own
     with torch_threads(threads if not device.startswith("cuda") else -1):
         normal_net = load_weights(normals).to(device)
         digest = _check_source(run_dir, normals, normal_net.cfg.num_views, session.rank)
