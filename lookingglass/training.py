@@ -170,9 +170,8 @@ def check_initial_weights(path: str | os.PathLike, net_config: Any) -> None:
         raise LookingGlassError(f"cannot read the network config ({exc})", meta_path) from None
     wanted = json.loads(json.dumps(dataclasses.asdict(net_config)))
     if saved != wanted:
-        changed = sorted(k for k in set(saved) | set(wanted) if saved.get(k) != wanted.get(k))
-        raise LookingGlassError(f"the --init weights are for another network (differs in {', '.join(changed)})",
-                                meta_path)
+        raise LookingGlassError(f"the --init weights are for another network (differs in "
+                                f"{', '.join(_changed_keys(saved, wanted))})", meta_path)
 
 
 def load_initial_weights(net: nn.Module, path: str | os.PathLike) -> str:
@@ -204,8 +203,7 @@ def record_or_compare(path: Path, data: dict, rank: int, mismatch: str, advice: 
         except ValueError as exc:
             raise LookingGlassError(f"cannot read {path.name} ({exc})", path) from None
         if saved != data:
-            changed = sorted(k for k in set(saved) | set(data) if saved.get(k) != data.get(k))
-            raise LookingGlassError(f"{mismatch} (differs in {', '.join(changed)}); {advice}", path)
+            raise LookingGlassError(f"{mismatch} (differs in {', '.join(_changed_keys(saved, data))}); {advice}", path)
     elif rank == 0:
         write_json(path, data)
 
@@ -328,6 +326,11 @@ class TrainingSession:
             save_weights(self.run_dir, net, extra)
         self.barrier()
         return metrics
+
+
+def _changed_keys(a: dict, b: dict) -> list[str]:
+    """The top-level keys whose values differ between two JSON objects, sorted."""
+    return sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
 
 
 def _mean(values: list[float]) -> float:
