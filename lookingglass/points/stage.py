@@ -39,7 +39,11 @@ class SurfaceConfig:
     ground-truth normals went 48.0 (20 000 points) -> 20.7 (40 000) against the hull's 15.9 (depth
     9 or 10 changed nothing: the spacing limits); on other scenes the change was within +-0.1.
     A point weight of 10 got scene 25 to 17.9 but, on PNet's points, opened spurious tunnels
-    (a torus came out genus 3), so it stays at MeshLab's 4."""
+    (a torus came out genus 3), so it stays at MeshLab's 4. Lower weights smooth PNet's surface
+    (CDN-mean -1.6 deg at weight 1 on a 16-scene validation split, `generate --split test --seed 1`)
+    but fuse slits (test scene 33: CD 24 -> 41 at weight 2, 69 at 1). Neighbours 8/16/32/64 gave the
+    same CD within 0.3% on that split and CDN-mean 15.3/14.9/14.6/14.4 deg; 64 starts to average
+    across slits (scene 33: CD 24.5 at 32, 25.3 at 64). 16 stays until 32 has its own test-split run."""
 
     points: int = 40000
     strategy: str = "RE"
