@@ -467,12 +467,9 @@ def _ls3_loop(vertices: np.ndarray, faces: np.ndarray, iterations: int,
     except pymeshlab.PyMeshLabException:
         # Marching cubes can pinch two sheets of the surface along an edge or at a vertex where the
         # hull is one voxel thin; LS3 needs a 2-manifold. Split the pinches and close what opens.
-        ms.meshing_remove_duplicate_vertices()
-        ms.meshing_remove_null_faces()
-        ms.meshing_repair_non_manifold_edges(method="Split Vertices")
-        ms.meshing_repair_non_manifold_vertices()
-        ms.meshing_close_holes()
-        ms.meshing_remove_unreferenced_vertices()
+        from .surface import repair_pinches
+
+        repair_pinches(ms)
         repaired = ms.current_mesh()
         repaired_v, repaired_f = repaired.vertex_matrix().copy(), repaired.face_matrix().copy()
         subdivide()

@@ -69,9 +69,26 @@ def _run_poisson(points: np.ndarray, normals: np.ndarray, depth: int, threads: i
             threads=_threads(threads))
     except pymeshlab.PyMeshLabException as exc:
         raise LookingGlassError(f"Poisson surface reconstruction failed: {exc}") from exc
+    # Marching cubes leaves vertices a hair apart where the surface passes near a grid corner.
+    # Merged here (1e-6 of the box diagonal) and the pinches that makes split, so no later rounding
+    # (the move back to the capture's frame, a PLY reader merging equal positions) can pinch the
+    # written mesh into a non-manifold one.
+    ms.meshing_merge_close_vertices(threshold=pymeshlab.PercentageValue(1e-4))
+    repair_pinches(ms)
     m = ms.current_mesh()  # the filter adds the surface as a new, current layer
     # process=True merges Poisson's duplicated vertices, so shared edges are recognized
     return trimesh.Trimesh(vertices=m.vertex_matrix(), faces=m.face_matrix(), process=True)
+
+
+def repair_pinches(ms) -> None:
+    """Split the current mesh of pymeshlab MeshSet `ms` where two sheets touch along an edge or at
+    a vertex (marching cubes makes these where a surface is one cell thin), and close what opens."""
+    ms.meshing_remove_duplicate_vertices()
+    ms.meshing_remove_null_faces()
+    ms.meshing_repair_non_manifold_edges(method="Split Vertices")
+    ms.meshing_repair_non_manifold_vertices()
+    ms.meshing_close_holes()
+    ms.meshing_remove_unreferenced_vertices()
 
 
 def _outside_hull_median(hull: trimesh.Trimesh, vertices: np.ndarray, probes: int = 256) -> float:
