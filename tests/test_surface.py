@@ -117,3 +117,15 @@ def test_errors():
         poisson_surface(p, n)
     with pytest.raises(ValueError, match="shape"):
         poisson_surface(p[:, :2], n[:, :2])
+
+
+def test_genus_counts_handles_over_bodies():
+    from lookingglass.points.stage import genus
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    torus = trimesh.creation.torus(major_radius=1.0, minor_radius=0.3)
+    far_torus = torus.copy()
+    far_torus.apply_translation([5, 0, 0])
+    assert genus(sphere) == 0 and genus(torus) == 1
+    assert genus(trimesh.util.concatenate([torus, far_torus])) == 2
+    assert genus(trimesh.util.concatenate([sphere, far_torus])) == 1

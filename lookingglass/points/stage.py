@@ -64,11 +64,19 @@ class SurfaceConfig:
 
 @dataclass
 class OrientedPoints:
-    """points (N, 3), normals (N, 3) float32 and seen (N,) bool, in the frame they were made in."""
+    """points (N, 3), normals (N, 3) float32 and seen (N,) bool, in the frame they were made in;
+    offsets (N, 3): PNet's displacement already added to `points` (None without PNet)."""
 
     points: np.ndarray
     normals: np.ndarray
     seen: np.ndarray
+    offsets: np.ndarray | None = None
+
+    def with_offset_gain(self, gain: float) -> OrientedPoints:
+        """The same points with PNet's displacement scaled by `gain` (0: the hull's points)."""
+        moved = self.points + (gain - 1.0) * self.offsets
+        return OrientedPoints(moved.astype(np.float32), self.normals, self.seen,
+                              (gain * self.offsets).astype(np.float32))
 
 
 def map_normals_to_hull(hull_mesh: trimesh.Trimesh, cameras: Cameras, n1: torch.Tensor, error: torch.Tensor,
@@ -100,7 +108,7 @@ def map_normals_to_hull(hull_mesh: trimesh.Trimesh, cameras: Cameras, n1: torch.
                                               config.smoothing_neighbours)
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
     return OrientedPoints((points + offsets).astype(np.float32), normals.astype(np.float32),
-                          mapped["seen"].numpy())
+                          mapped["seen"].numpy(), offsets.astype(np.float32))
 
 
 def smooth_over_neighbours(points: np.ndarray, values: list[np.ndarray], k: int) -> list[np.ndarray]:
@@ -116,6 +124,16 @@ def smooth_over_neighbours(points: np.ndarray, values: list[np.ndarray], k: int)
     return [np.asarray(v, np.float64)[idx].mean(axis=1) for v in values]
 
 
+def genus(mesh: trimesh.Trimesh) -> int:
+    """Total genus of a closed mesh: sum over its bodies of (2 - Euler characteristic) / 2."""
+    return int(round(mesh.body_count - mesh.euler_number / 2))
+
+
+def _poisson(oriented: OrientedPoints, config: SurfaceConfig, hull: trimesh.Trimesh) -> trimesh.Trimesh:
+    return poisson_surface(oriented.points, oriented.normals, depth=config.depth, hull=hull,
+                           samples_per_node=config.samples_per_node, point_weight=config.point_weight)
+
+
 def surface_from_normals(hull_mesh: trimesh.Trimesh, center: np.ndarray, scale: float, cameras: Cameras,
                          n1: torch.Tensor, error: torch.Tensor, tir: torch.Tensor, mask: torch.Tensor,
                          config: SurfaceConfig, point_net: PointNet | None = None,
@@ -126,8 +144,19 @@ def surface_from_normals(hull_mesh: trimesh.Trimesh, center: np.ndarray, scale: 
     unit_hull.vertices = (np.asarray(hull_mesh.vertices) - center) / scale
     unit_cams = cameras.transformed(torch.as_tensor(center), scale)
     oriented = map_normals_to_hull(unit_hull, unit_cams, n1, error, tir, mask, config, point_net)
-    mesh = poisson_surface(oriented.points, oriented.normals, depth=config.depth, hull=unit_hull,
-                           samples_per_node=config.samples_per_node, point_weight=config.point_weight)
+    mesh = _poisson(oriented, config, unit_hull)
+    if oriented.offsets is not None:
+        # PNet's displacement can push facing sheets through each other and open tunnels that no
+        # silhouette showed. The reference is the surface through the unmoved hull points (not the
+        # hull itself: at low resolution carving leaves pinholes that Poisson closes); a surface
+        # with more handles than it is retried with the displacement halved, then dropped.
+        reference = _poisson(oriented.with_offset_gain(0.0), config, unit_hull)
+        if genus(mesh) > genus(reference):
+            half = oriented.with_offset_gain(0.5)
+            mesh = _poisson(half, config, unit_hull)
+            gain = 0.5 if genus(mesh) <= genus(reference) else 0.0
+            oriented, mesh = (half, mesh) if gain else (oriented.with_offset_gain(0.0), reference)
+            mesh.metadata["offset_gain"] = gain
     mesh.vertices = np.asarray(mesh.vertices) * scale + center
     return mesh, OrientedPoints((oriented.points * scale + center).astype(np.float32), oriented.normals,
                                 oriented.seen)
