@@ -59,6 +59,7 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
         gt, hull = dataset.meshes(i)
         t = scene_tensors(sample, net.cfg if net is not None else _plain_config(), 1.4723, device)
         cams, mask = t["cameras"], t["mask"]
+        cams_cpu = cams.to("cpu")  # feature mapping and Poisson run on the CPU
         record = {"index": i, "vh": shape_metrics(hull, gt)}
         maps = {"vh+gt-normals": (t["n1"], None)}
         if net is not None:
@@ -81,7 +82,7 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
                 runs.append((f"pnet-{point_strategy}", point_strategy, point_net))
             maps_cpu = [x.cpu() for x in (n1_hw, error, tir, mask)]
             for row, strategy, pnet in runs:
-                record[row] = _surface_metrics(hull, gt, dataset.meta(i)["hull"], cams.to("cpu"), *maps_cpu,
+                record[row] = _surface_metrics(hull, gt, dataset.meta(i)["hull"], cams_cpu, *maps_cpu,
                                                dataclasses.replace(surface, strategy=strategy), pnet)
         scenes.append(record)
         if on_scene is not None:

@@ -145,17 +145,19 @@ def surface_from_normals(hull_mesh: trimesh.Trimesh, center: np.ndarray, scale: 
     unit_cams = cameras.transformed(torch.as_tensor(center), scale)
     oriented = map_normals_to_hull(unit_hull, unit_cams, n1, error, tir, mask, config, point_net)
     mesh = _poisson(oriented, config, unit_hull)
-    if oriented.offsets is not None:
+    if oriented.offsets is not None and genus(mesh) > 0:
         # PNet's displacement can push facing sheets through each other and open tunnels that no
         # silhouette showed. The reference is the surface through the unmoved hull points (not the
         # hull itself: at low resolution carving leaves pinholes that Poisson closes); a surface
-        # with more handles than it is retried with the displacement halved, then dropped.
-        reference = _poisson(oriented.with_offset_gain(0.0), config, unit_hull)
+        # with more handles than it is retried with the displacement halved, then dropped. (A
+        # genus-0 surface has no handles to add, so most shapes skip the reference's Poisson.)
+        unmoved = oriented.with_offset_gain(0.0)
+        reference = _poisson(unmoved, config, unit_hull)
         if genus(mesh) > genus(reference):
             half = oriented.with_offset_gain(0.5)
             mesh = _poisson(half, config, unit_hull)
             gain = 0.5 if genus(mesh) <= genus(reference) else 0.0
-            oriented, mesh = (half, mesh) if gain else (oriented.with_offset_gain(0.0), reference)
+            oriented, mesh = (half, mesh) if gain else (unmoved, reference)
             mesh.metadata["offset_gain"] = gain
     mesh.vertices = np.asarray(mesh.vertices) * scale + center
     return mesh, OrientedPoints((oriented.points * scale + center).astype(np.float32), oriented.normals,
