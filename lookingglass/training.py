@@ -157,7 +157,9 @@ def load_weights(path: str | os.PathLike, config_cls: type, net_cls: Callable[[A
 
 def check_initial_weights(path: str | os.PathLike, net_config: Any) -> None:
     """Refuse --init weights that are missing or made for another network config (checked
-    before a trainer spends time on anything else)."""
+    before a trainer spends time on anything else). Keys the config class lists in
+    `FINE_TUNE_FREE` (settings that change no parameter, e.g. the normal net's view count) may
+    differ: such weights start the new run, which keeps its own setting."""
     path = Path(path)
     meta_path = path.with_suffix(".json")
     for p in (path, meta_path):
@@ -169,9 +171,11 @@ def check_initial_weights(path: str | os.PathLike, net_config: Any) -> None:
     except (ValueError, AttributeError) as exc:
         raise LookingGlassError(f"cannot read the network config ({exc})", meta_path) from None
     wanted = json.loads(json.dumps(dataclasses.asdict(net_config)))
-    if saved != wanted:
+    free = getattr(type(net_config), "FINE_TUNE_FREE", frozenset())
+    changed = [k for k in _changed_keys(saved, wanted) if k not in free]
+    if changed:
         raise LookingGlassError(f"the --init weights are for another network (differs in "
-                                f"{', '.join(_changed_keys(saved, wanted))})", meta_path)
+                                f"{', '.join(changed)})", meta_path)
 
 
 def load_initial_weights(net: nn.Module, path: str | os.PathLike) -> str:

@@ -78,3 +78,27 @@ def test_random_view_subsets(tiny_dataset, tmp_path):
     cfg.views_per_step = 2
     metrics = train_normals(ds, tmp_path / "sub", cfg)
     assert metrics["step"] == 4 and metrics["loss"] > 0
+
+
+def test_init_across_view_counts(tiny_dataset, tmp_path):
+    """--init: weights of a 10-view net start a 5-view run (the view count changes no parameter;
+    lr 0 keeps them exactly and the new run keeps its own view count), but a net of other widths
+    is refused before training starts."""
+    import dataclasses
+
+    ds = TransparentSceneDataset(tiny_dataset, "train")
+    ten = _config(epochs=1)
+    ten.net.num_views = 10
+    train_normals(ds, tmp_path / "ten", ten, max_steps=1)
+    init = tmp_path / "ten" / "weights.safetensors"
+    assert load_weights(init).cfg.num_views == 10
+    train_normals(ds, tmp_path / "five", dataclasses.replace(_config(epochs=1), lr=0.0, init=str(init)))
+    five = load_weights(tmp_path / "five" / "weights.safetensors")
+    assert five.cfg.num_views == 5 and five.cfg.theta_deg == 25.0  # the 5-view rig's cost-volume angle
+    a, b = load_weights(init).state_dict(), five.state_dict()
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
+    wide = _config(epochs=1)
+    wide.net.fnet_channels = 32
+    with pytest.raises(LookingGlassError, match="another network.*fnet_channels"):
+        train_normals(ds, tmp_path / "wide", dataclasses.replace(wide, init=str(init)))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor, nn
@@ -42,6 +43,10 @@ class NormalNetConfig:
     # with the last layer zero-initialized, so an untrained net starts at the hull's normals and
     # training spends its steps on corrections (the paper's net regresses normals from scratch).
     residual: bool = False
+
+    # Settings that change no parameter: weights trained at one view count can start (--init)
+    # training at another -- the cost volume samples K neighbours whatever the rig.
+    FINE_TUNE_FREE: ClassVar[frozenset] = frozenset({"num_views", "cost_volume_theta_deg"})
 
     @property
     def in_channels(self) -> int:
