@@ -340,6 +340,7 @@ def eval_shapes(
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write rows and per-scene metrics as JSON "
                                             "(after every scene; a rerun with the same settings resumes from it)."),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
+    workers: int = typer.Option(0, help="Scenes evaluated at once on the CPU, one process each (0: one per core)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Print the paper's Table 2/3 (CD, CDN-mean, CDN-med, Metro) for the hull and the surfaces made
@@ -383,7 +384,8 @@ def eval_shapes(
         reporter.info(f"resuming from {json_out}: {len(done)} scene(s) done")
     save = (lambda partial: write_json(json_out, {"settings": settings, **partial})) if json_out else None
     result = evaluate_shapes(dataset, weights, chosen, latent, surface, max_scenes=max_scenes, reporter=reporter,
-                             point_weights=point_weights, done=done, on_scene=save, device=_device(device))
+                             point_weights=point_weights, done=done, on_scene=save, device=_device(device),
+                             workers=workers)
     if save is not None:
         save(result)
     print(markdown_table(result["rows"]))

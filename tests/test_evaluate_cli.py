@@ -67,6 +67,24 @@ def test_eval_shapes_scores_writes_json_and_resumes(test_split):
     assert other.returncode == 2 and "other settings" in other.stderr and "Traceback" not in other.stderr
 
 
+def test_eval_shapes_workers_match_one_process(tmp_path):
+    """--workers 2 (a process per scene; `generate` uses the same pool) gives the records of one
+    process, up to float rounding, for every scene and row."""
+    run("generate", "--out", tmp_path, "--scenes", 2, "--split", "test", "--workers", 2, "--quiet")
+    records = {}
+    for workers in (1, 2):
+        out = tmp_path / f"w{workers}.json"
+        run("eval-shapes", "--data", tmp_path, "--latent-iterations", 0, "--strategies", "RE", "--json", out,
+            "--surface-points", 4096, "--workers", workers, "--quiet")
+        records[workers] = json.loads(out.read_text())["scenes"]
+    assert [s["index"] for s in records[2]] == [0, 1]
+    for one, two in zip(records[1], records[2]):
+        assert set(one) == set(two) == {"index", "vh", "vh+gt-normals", "normals-RE", "pnet-RE"}
+        for row in ("vh", "vh+gt-normals", "normals-RE", "pnet-RE"):
+            for metric, value in one[row].items():
+                assert two[row][metric] == pytest.approx(value, rel=1e-3), (one["index"], row, metric)
+
+
 def test_eval_normals_prints_table_1(test_split):
     proc = run("eval-normals", "--data", test_split, "--weights", f"wr+cv={shipped_weights(10)[0]}",
                "--max-scenes", 1, "--latent-iterations", 2, "--quiet")

@@ -51,8 +51,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import multiprocessing
-import os
 import re
 import shutil
 import time
@@ -65,6 +63,7 @@ import numpy as np
 
 from ..errors import LookingGlassError
 from ..hull import HullConfig
+from ..parallel import map_in_processes, worker_count
 from .shapes import ShapeConfig
 
 if TYPE_CHECKING:
@@ -407,16 +406,6 @@ def _check_envmaps(config: DatasetConfig, split: str, folder) -> None:
     EnvmapSampler(folder, config.envmap_height, config.p_procedural, names=split_envmap_names(config, split, folder))
 
 
-def _worker_init() -> None:
-    import signal
-
-    import torch
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the parent stops the pool, quietly
-    torch.set_num_threads(1)
-    warnings.simplefilter("ignore")  # recorded per scene in meta.json instead
-
-
 def _worker(task: tuple) -> tuple[int, dict | None]:
     split_dir, index, split, seed, views, config, folder = task
     return index, generate_scene(Path(split_dir), index, split, seed, views, config, folder)
@@ -449,37 +438,17 @@ def generate_dataset(out, scenes: int, views: int = 10, split: str = "train", se
     skipped = len(mine) - len(todo)
     if skipped:
         reporter.info(f"{skipped} of {len(mine)} scenes already finished in {split_dir}")
-    workers = workers or os.cpu_count() or 1
-    workers = max(1, min(workers, len(todo)))
+    workers = worker_count(workers, len(todo))
     tasks = [(str(split_dir), i, split, seed, views, config, str(envmap_folder)) for i in todo]
     metas: list[dict] = []
     start = time.perf_counter()
     desc = f"{split} scenes" + (f" (shard {k}/{n})" if n > 1 else "")
-    if workers == 1 or not todo:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            for task in reporter.track(tasks, total=len(tasks), description=desc):
-                _, meta = _worker(task)
-                if meta:
-                    metas.append(meta)
-    else:
-        # spawn: a fresh interpreter per worker (fork after torch / OpenMP start-up can hang);
-        # one BLAS / OpenMP thread each, set before the child imports anything.
-        saved = {v: os.environ.get(v) for v in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
-        os.environ.update({v: "1" for v in saved})
-        try:
-            ctx = multiprocessing.get_context("spawn")
-            with ctx.Pool(workers, initializer=_worker_init) as pool:
-                results = pool.imap_unordered(_worker, tasks, chunksize=1)
-                for _, meta in reporter.track(results, total=len(tasks), description=desc):
-                    if meta:
-                        metas.append(meta)
-        finally:
-            for v, old in saved.items():
-                if old is None:
-                    os.environ.pop(v, None)
-                else:
-                    os.environ[v] = old
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # recorded per scene in meta.json instead
+        results = (map(_worker, tasks) if workers == 1 or not todo else map_in_processes(_worker, tasks, workers))
+        for _, meta in reporter.track(results, total=len(tasks), description=desc):
+            if meta:
+                metas.append(meta)
     seconds = time.perf_counter() - start
     parts = sorted({p for m in metas for p in m["timings"]})
     timings = {p: float(np.mean([m["timings"].get(p, 0.0) for m in metas])) for p in parts}

@@ -23,6 +23,7 @@ from ..metrics import shape_metrics
 from ..normals.latent import LatentOptConfig, optimize_latent
 from ..normals.render_layer import prediction_error_maps
 from ..normals.train import load_weights, scene_tensors
+from ..parallel import map_in_processes, worker_count
 from ..progress import Reporter
 from .stage import SurfaceConfig, surface_from_normals
 from .train import load_point_weights
@@ -34,27 +35,55 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
                     latent: LatentOptConfig | None = None, surface: SurfaceConfig | None = None,
                     max_scenes: int = 0, reporter: Reporter | None = None,
                     point_weights: Path | None = None, done: list[dict] | None = None,
-                    on_scene: Callable[[dict], None] | None = None, device: str = "cpu") -> dict:
+                    on_scene: Callable[[dict], None] | None = None, device: str = "cpu",
+                    workers: int = 1) -> dict:
     """Returns {"rows": {name: {metric: mean}}, "scenes": [{"index", name: {metric}}...]}.
 
     done: scene records of an earlier, interrupted run with the same settings (their scenes are
     not redone); on_scene: called with the partial result after every scene (to save it).
+    workers: scenes evaluated at once, each in its own process with one thread (0: one per core;
+    CPU only). The records do not depend on it beyond float rounding.
 
     dataset: a TransparentSceneDataset (test split, not augmented). Surfaces are made in each
     scene's hull-normalized frame (PNet's, from meta.json) and scored against the GT in its own
     unit-sphere frame. The networks and the rendering layer run on `device`; feature mapping and
     Poisson on the CPU."""
     reporter = reporter or Reporter(quiet=True)
-    surface = surface or SurfaceConfig()
-    net = load_weights(weights).to(device) if weights is not None else None
-    point_net = load_point_weights(point_weights).to(device) if point_weights is not None else None
-    point_strategy = "RE"
-    if point_weights is not None:  # PNet is evaluated with the mapping it was trained on
-        point_strategy = json.loads(Path(point_weights).with_suffix(".json").read_text()).get("strategy", "RE")
     n = len(dataset) if not max_scenes else min(max_scenes, len(dataset))
     scenes = [record for record in (done or []) if record["index"] < n]
     finished = {record["index"] for record in scenes}
-    for i in reporter.track([i for i in range(n) if i not in finished], description="test scenes"):
+    todo = [i for i in range(n) if i not in finished]
+    args = (dataset, weights, point_weights, tuple(strategies), latent, surface or SurfaceConfig())
+    workers = 1 if device != "cpu" else worker_count(workers, len(todo))
+    if workers == 1:
+        evaluation = _ShapeEvaluation(*args, device=device)
+        records = map(evaluation.scene, todo)
+    else:
+        records = map_in_processes(_scene_in_worker, todo, workers, _start_worker, args)
+    for record in reporter.track(records, total=len(todo), description="test scenes"):
+        scenes.append(record)
+        if on_scene is not None:
+            on_scene(summarize(scenes))
+    return summarize(scenes)
+
+
+class _ShapeEvaluation:
+    """What every scene's evaluation needs: the dataset, the networks (loaded once) and settings."""
+
+    def __init__(self, dataset, weights: Path | None, point_weights: Path | None, strategies: tuple[str, ...],
+                 latent: LatentOptConfig | None, surface: SurfaceConfig, device: str = "cpu"):
+        self.dataset, self.strategies, self.latent, self.surface, self.device = (dataset, strategies, latent,
+                                                                                 surface, device)
+        self.net = load_weights(weights).to(device) if weights is not None else None
+        self.point_net = load_point_weights(point_weights).to(device) if point_weights is not None else None
+        self.point_strategy = "RE"
+        if point_weights is not None:  # PNet is evaluated with the mapping it was trained on
+            self.point_strategy = json.loads(Path(point_weights).with_suffix(".json").read_text()).get("strategy",
+                                                                                                      "RE")
+
+    def scene(self, i: int) -> dict:
+        """{"index": i, row: metrics} for test scene i."""
+        dataset, device, net, surface = self.dataset, self.device, self.net, self.surface
         sample = dataset[i]
         gt, hull = dataset.meshes(i)
         t = scene_tensors(sample, net.cfg if net is not None else _plain_config(), 1.4723, device)
@@ -63,9 +92,9 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
         record = {"index": i, "vh": shape_metrics(hull, gt)}
         maps = {"vh+gt-normals": (t["n1"], None)}
         if net is not None:
-            if latent is not None:
+            if self.latent is not None:
                 n1, n2, _ = optimize_latent(net, t["inputs"], t["cost_volume"], t["envmap"], t["image"], mask, cams,
-                                            latent)
+                                            self.latent)
             else:
                 with torch.no_grad():
                     n1, n2 = net(t["inputs"], t["cost_volume"])
@@ -77,17 +106,27 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
             else:
                 error, tir, _ = prediction_error_maps(t["envmap"], n1_hw, n2.permute(0, 2, 3, 1), cams, t["image"],
                                                       mask)
-            runs = [(f"normals-{s}", s, None) for s in strategies] if name == "normals" else [(name, strategies[0], None)]
-            if name == "normals" and point_net is not None:
-                runs.append((f"pnet-{point_strategy}", point_strategy, point_net))
+            runs = ([(f"normals-{s}", s, None) for s in self.strategies] if name == "normals"
+                    else [(name, self.strategies[0], None)])
+            if name == "normals" and self.point_net is not None:
+                runs.append((f"pnet-{self.point_strategy}", self.point_strategy, self.point_net))
             maps_cpu = [x.cpu() for x in (n1_hw, error, tir, mask)]
             for row, strategy, pnet in runs:
                 record[row] = _surface_metrics(hull, gt, dataset.meta(i)["hull"], cams_cpu, *maps_cpu,
                                                dataclasses.replace(surface, strategy=strategy), pnet)
-        scenes.append(record)
-        if on_scene is not None:
-            on_scene(summarize(scenes))
-    return summarize(scenes)
+        return record
+
+
+_WORKER_EVALUATION: _ShapeEvaluation | None = None  # one per worker process
+
+
+def _start_worker(*args) -> None:
+    global _WORKER_EVALUATION
+    _WORKER_EVALUATION = _ShapeEvaluation(*args)
+
+
+def _scene_in_worker(i: int) -> dict:
+    return _WORKER_EVALUATION.scene(i)
 
 
 def summarize(scenes: list[dict]) -> dict:
