@@ -445,7 +445,7 @@ def generate_dataset(out, scenes: int, views: int = 10, split: str = "train", se
     desc = f"{split} scenes" + (f" (shard {k}/{n})" if n > 1 else "")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # recorded per scene in meta.json instead
-        results = (map(_worker, tasks) if workers == 1 or not todo else map_in_processes(_worker, tasks, workers))
+        results = map(_worker, tasks) if workers == 1 else map_in_processes(_worker, tasks, workers)
         for _, meta in reporter.track(results, total=len(tasks), description=desc):
             if meta:
                 metas.append(meta)

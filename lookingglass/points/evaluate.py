@@ -89,6 +89,7 @@ class _ShapeEvaluation:
         t = scene_tensors(sample, net.cfg if net is not None else _plain_config(), 1.4723, device)
         cams, mask = t["cameras"], t["mask"]
         cams_cpu = cams.to("cpu")  # feature mapping and Poisson run on the CPU
+        frame = dataset.meta(i)["hull"]  # read once: every row's surface is made in this frame
         record = {"index": i, "vh": shape_metrics(hull, gt)}
         maps = {"vh+gt-normals": (t["n1"], None)}
         if net is not None:
@@ -112,7 +113,7 @@ class _ShapeEvaluation:
                 runs.append((f"pnet-{self.point_strategy}", self.point_strategy, self.point_net))
             maps_cpu = [x.cpu() for x in (n1_hw, error, tir, mask)]
             for row, strategy, pnet in runs:
-                record[row] = _surface_metrics(hull, gt, dataset.meta(i)["hull"], cams_cpu, *maps_cpu,
+                record[row] = _surface_metrics(hull, gt, frame, cams_cpu, *maps_cpu,
                                                dataclasses.replace(surface, strategy=strategy), pnet)
         return record
 
