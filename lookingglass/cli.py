@@ -19,6 +19,8 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
 
 SURFACE_POINTS_HELP = ("Points on the hull for the surface (default 40 000; more keeps narrower slits and "
                        "takes longer).")
+WORKERS_HELP = ("Scenes evaluated at once on the CPU, one process each (0: one per core; with a GPU, one "
+                "process).")
 
 
 def _surface_points(value: Optional[int]) -> Optional[int]:
@@ -307,6 +309,7 @@ def eval_normals(
     latent_iterations: int = typer.Option(10, help="Latent-optimization steps per phase for wr+cv+op (0: skip)."),
     max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
+    workers: int = typer.Option(0, help=WORKERS_HELP),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Print the paper's Table 1 (N1/N2 angle errors, render error) on the test split as markdown."""
@@ -323,7 +326,7 @@ def eval_normals(
         paths[name] = Path(path)
     latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
     dataset = TransparentSceneDataset(data, "test", views=views)
-    results = evaluate_normals(dataset, paths, latent, max_scenes, Reporter(quiet=quiet), _device(device))
+    results = evaluate_normals(dataset, paths, latent, max_scenes, Reporter(quiet=quiet), _device(device), workers)
     print(markdown_table(results))
 
 
@@ -340,7 +343,7 @@ def eval_shapes(
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write rows and per-scene metrics as JSON "
                                             "(after every scene; a rerun with the same settings resumes from it)."),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
-    workers: int = typer.Option(0, help="Scenes evaluated at once on the CPU, one process each (0: one per core)."),
+    workers: int = typer.Option(0, help=WORKERS_HELP),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Print the paper's Table 2/3 (CD, CDN-mean, CDN-med, Metro) for the hull and the surfaces made

@@ -67,14 +67,20 @@ def test_eval_shapes_scores_writes_json_and_resumes(test_split):
     assert other.returncode == 2 and "other settings" in other.stderr and "Traceback" not in other.stderr
 
 
-def test_eval_shapes_workers_match_one_process(tmp_path):
+@pytest.fixture(scope="module")
+def two_scene_split(tmp_path_factory):
+    root = tmp_path_factory.mktemp("two_scenes")
+    run("generate", "--out", root, "--scenes", 2, "--split", "test", "--workers", 2, "--quiet")
+    return root
+
+
+def test_eval_shapes_workers_match_one_process(two_scene_split):
     """--workers 2 (a process per scene; `generate` uses the same pool) gives the records of one
     process, up to float rounding, for every scene and row."""
-    run("generate", "--out", tmp_path, "--scenes", 2, "--split", "test", "--workers", 2, "--quiet")
     records = {}
     for workers in (1, 2):
-        out = tmp_path / f"w{workers}.json"
-        run("eval-shapes", "--data", tmp_path, "--latent-iterations", 0, "--strategies", "RE", "--json", out,
+        out = two_scene_split / f"w{workers}.json"
+        run("eval-shapes", "--data", two_scene_split, "--latent-iterations", 0, "--strategies", "RE", "--json", out,
             "--surface-points", 4096, "--workers", workers, "--quiet")
         records[workers] = json.loads(out.read_text())["scenes"]
     assert [s["index"] for s in records[2]] == [0, 1]
@@ -83,6 +89,19 @@ def test_eval_shapes_workers_match_one_process(tmp_path):
         for row in ("vh", "vh+gt-normals", "normals-RE", "pnet-RE"):
             for metric, value in one[row].items():
                 assert two[row][metric] == pytest.approx(value, rel=1e-3), (one["index"], row, metric)
+
+
+def test_eval_normals_workers_match_one_process(two_scene_split):
+    """eval-normals pools every pixel of both scenes whichever process evaluated them: the table of
+    two workers is that of one, to its printed digits (+-1 in the last from float rounding)."""
+    tables = {}
+    for workers in (1, 2):
+        proc = run("eval-normals", "--data", two_scene_split, "--weights", f"wr+cv={shipped_weights(10)[0]}",
+                   "--latent-iterations", 2, "--workers", workers, "--quiet")
+        tables[workers] = table_rows(proc.stdout)
+    assert list(tables[2]) == list(tables[1]) == ["vh", "wr+cv", "wr+cv+op"]
+    for row, numbers in tables[1].items():
+        assert tables[2][row] == pytest.approx(numbers, abs=0.011), row
 
 
 def test_eval_normals_prints_table_1(test_split):

@@ -10,12 +10,14 @@ in the table, as the paper reports it).
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from ..parallel import map_in_processes, worker_count
 from ..progress import Reporter
 from .latent import LatentOptConfig, optimize_latent
 from .render_layer import comparable, render_layer
@@ -48,6 +50,14 @@ class NormalErrors:
         self.count += int(m.sum()) * 3
         self.seconds += seconds
 
+    def merge(self, other: NormalErrors) -> None:
+        """Pool another scene's (or worker's) errors into these."""
+        self.n1 += other.n1
+        self.n2 += other.n2
+        self.sq_err += other.sq_err
+        self.count += other.count
+        self.seconds += other.seconds
+
     def summary(self) -> dict:
         n1, n2 = np.concatenate(self.n1), np.concatenate(self.n2)
         return {"n1_median": float(np.median(n1)), "n1_mean": float(n1.mean()), "n2_median": float(np.median(n2)),
@@ -55,39 +65,74 @@ class NormalErrors:
 
 
 def evaluate_normals(dataset, weights: dict[str, Path], latent: LatentOptConfig | None = None,
-                     max_scenes: int = 0, reporter: Reporter | None = None, device: str = "cpu") -> dict[str, dict]:
+                     max_scenes: int = 0, reporter: Reporter | None = None, device: str = "cpu",
+                     workers: int = 1) -> dict[str, dict]:
     """Rows of Table 1. weights maps a variant name (basic, wr, wr+cv) to its weights file;
-    `wr+cv+op` is added when wr+cv is given and `latent` is not None. Runs on `device`."""
-    import time
-
+    `wr+cv+op` is added when wr+cv is given and `latent` is not None. Runs on `device`.
+    workers: scenes evaluated at once, each in its own process with one thread (0: one per core;
+    CPU only); the pooled statistics do not depend on it beyond float rounding."""
     reporter = reporter or Reporter(quiet=True)
-    nets = {name: load_weights(path).to(device) for name, path in weights.items()}
-    rows = {"vh": NormalErrors(), **{name: NormalErrors() for name in nets}}
-    if "wr+cv" in nets and latent is not None:
-        rows["wr+cv+op"] = NormalErrors()
     n = len(dataset) if not max_scenes else min(max_scenes, len(dataset))
-    for i in reporter.track(range(n), description="test scenes"):
-        sample = dataset[i]
+    args = (dataset, dict(weights), latent)
+    workers = 1 if device != "cpu" else worker_count(workers, n)
+    if workers == 1:
+        evaluation = _NormalEvaluation(*args, device=device)
+        per_scene = map(evaluation.scene, range(n))
+    else:
+        per_scene = map_in_processes(_scene_in_worker, range(n), workers, _start_worker, args)
+    rows: dict[str, NormalErrors] = {}
+    for scene_rows in reporter.track(per_scene, total=n, description="test scenes"):
+        for name, errors in scene_rows.items():
+            rows.setdefault(name, NormalErrors()).merge(errors)
+    order = ["vh", *weights, "wr+cv+op"]  # the table's row order, whatever order the scenes finished in
+    return {name: {**rows[name].summary(), "seconds_per_scene": rows[name].seconds / max(n, 1)}
+            for name in order if name in rows}
+
+
+class _NormalEvaluation:
+    """What every scene's evaluation needs: the dataset, the networks (loaded once) and settings."""
+
+    def __init__(self, dataset, weights: dict[str, Path], latent: LatentOptConfig | None, device: str = "cpu"):
+        self.dataset, self.latent, self.device = dataset, latent, device
+        self.nets = {name: load_weights(path).to(device) for name, path in weights.items()}
+
+    def scene(self, i: int) -> dict[str, NormalErrors]:
+        """Every row's errors on test scene i."""
+        device, sample = self.device, self.dataset[i]
+        rows = {"vh": NormalErrors()}
         base = None
-        for name, net in nets.items():
+        for name, net in self.nets.items():
             t = scene_tensors(sample, net.cfg, 1.4723, device)
             base = base or t
             start = time.perf_counter()
             with torch.no_grad():
                 n1, n2 = net(t["inputs"], t["cost_volume"])
-            rows[name].add(n1, n2, t, time.perf_counter() - start)
-            if name == "wr+cv" and "wr+cv+op" in rows:
+            rows.setdefault(name, NormalErrors()).add(n1, n2, t, time.perf_counter() - start)
+            if name == "wr+cv" and self.latent is not None:
                 start = time.perf_counter()
                 o1, o2, _ = optimize_latent(net, t["inputs"], t["cost_volume"], t["envmap"], t["image"], t["mask"],
-                                            t["cameras"], latent)
-                rows["wr+cv+op"].add(o1.detach(), o2.detach(), t, time.perf_counter() - start)
+                                            t["cameras"], self.latent)
+                rows.setdefault("wr+cv+op", NormalErrors()).add(o1.detach(), o2.detach(), t,
+                                                                time.perf_counter() - start)
         if base is None:
             from .model import NormalNetConfig
 
             base = scene_tensors(sample, NormalNetConfig(use_error_map=False, use_cost_volume=False), 1.4723, device)
         vh1 = sample["vh_n1"].to(device).float() * base["mask"].unsqueeze(1)
         rows["vh"].add(vh1, sample["vh_n2"].to(device).float(), base)
-    return {name: {**row.summary(), "seconds_per_scene": row.seconds / max(n, 1)} for name, row in rows.items()}
+        return rows
+
+
+_WORKER_EVALUATION: _NormalEvaluation | None = None  # one per worker process
+
+
+def _start_worker(*args) -> None:
+    global _WORKER_EVALUATION
+    _WORKER_EVALUATION = _NormalEvaluation(*args)
+
+
+def _scene_in_worker(i: int) -> dict[str, NormalErrors]:
+    return _WORKER_EVALUATION.scene(i)
 
 
 def markdown_table(results: dict[str, dict]) -> str:
