@@ -129,3 +129,41 @@ def test_genus_counts_handles_over_bodies():
     assert genus(sphere) == 0 and genus(torus) == 1
     assert genus(trimesh.util.concatenate([torus, far_torus])) == 2
     assert genus(trimesh.util.concatenate([sphere, far_torus])) == 1
+
+
+@pytest.mark.parametrize("handles_at, expected_gain", [
+    ({1.0: 3, 0.75: 2, 0.5: 1, 0.25: 1, 0.0: 1}, 0.5),  # the largest fraction that adds no handle
+    ({1.0: 2, 0.75: 2, 0.5: 2, 0.25: 3, 0.0: 1}, 0.0),  # none does: the hull's points
+    ({1.0: 1, 0.75: 4, 0.5: 4, 0.25: 4, 0.0: 1}, None),  # the full displacement adds none: kept as is
+])
+def test_topology_guard_keeps_the_largest_displacement_that_adds_no_handles(monkeypatch, handles_at, expected_gain):
+    """surface_from_normals' guard against PNet's spurious tunnels: a Poisson surface per tried
+    fraction of PNet's displacement (real meshes with that many handles stand in for Poisson's)."""
+    from lookingglass.points import stage
+
+    base = np.zeros((4, 3), np.float32)
+    offsets = np.full((4, 3), 0.1, np.float32)
+    full = stage.OrientedPoints(base + offsets, np.zeros((4, 3), np.float32), np.ones(4, bool), offsets)
+    torus = trimesh.creation.torus(major_radius=1.0, minor_radius=0.3)
+
+    def poisson_with_handles(oriented, config, hull):
+        gain = round(float(oriented.offsets[0, 0]) / 0.1, 2)
+        tori = [torus.copy().apply_translation([5.0 * k, 0, 0]) for k in range(handles_at[gain])]
+        mesh = trimesh.util.concatenate(tori) if tori else trimesh.creation.icosphere()
+        mesh.metadata["gain_used"] = gain
+        return mesh
+
+    class Unmoved:  # the cameras only need transforming into the hull's frame
+        def transformed(self, center, scale):
+            return self
+
+    monkeypatch.setattr(stage, "map_normals_to_hull", lambda *args, **kwargs: full)
+    monkeypatch.setattr(stage, "_poisson", poisson_with_handles)
+    mesh, oriented = stage.surface_from_normals(trimesh.creation.icosphere(), np.zeros(3), 1.0, Unmoved(), None, None,
+                                                None, None, stage.SurfaceConfig())
+    assert mesh.metadata.get("offset_gain") == expected_gain
+    used = 1.0 if expected_gain is None else expected_gain
+    assert mesh.metadata["gain_used"] == used
+    np.testing.assert_allclose(oriented.points, base + used * offsets, atol=1e-7)
+    with pytest.raises(ValueError, match="guard_gains"):
+        stage.SurfaceConfig(guard_gains=(1.0,))
