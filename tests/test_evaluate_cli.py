@@ -91,27 +91,21 @@ def test_eval_shapes_workers_match_one_process(two_scene_split):
                 assert two[row][metric] == pytest.approx(value, rel=1e-3), (one["index"], row, metric)
 
 
-def test_eval_normals_workers_match_one_process(two_scene_split):
-    """eval-normals pools every pixel of both scenes whichever process evaluated them: the table of
-    two workers is that of one, to its printed digits (+-1 in the last from float rounding)."""
+def test_eval_normals_prints_table_1_and_workers_match_one_process(two_scene_split):
+    """The table's rows and ranges; eval-normals pools every pixel of both scenes whichever process
+    evaluated them, so two workers print one process's table, to its printed digits (+-1 in the last
+    from float rounding)."""
     tables = {}
     for workers in (1, 2):
         proc = run("eval-normals", "--data", two_scene_split, "--weights", f"wr+cv={shipped_weights(10)[0]}",
                    "--latent-iterations", 2, "--workers", workers, "--quiet")
         tables[workers] = table_rows(proc.stdout)
     assert list(tables[2]) == list(tables[1]) == ["vh", "wr+cv", "wr+cv+op"]
+    for numbers in tables[1].values():  # N1 median/mean, N2 median/mean (degrees), render error
+        assert len(numbers) == 5 and all(0 < v < 90 for v in numbers[:4]) and numbers[4] > 0
     for row, numbers in tables[1].items():
         assert tables[2][row] == pytest.approx(numbers, abs=0.011), row
-
-
-def test_eval_normals_prints_table_1(test_split):
-    proc = run("eval-normals", "--data", test_split, "--weights", f"wr+cv={shipped_weights(10)[0]}",
-               "--max-scenes", 1, "--latent-iterations", 2, "--quiet")
-    rows = table_rows(proc.stdout)
-    assert set(rows) == {"vh", "wr+cv", "wr+cv+op"}
-    for numbers in rows.values():  # N1 median/mean, N2 median/mean (degrees), render error
-        assert len(numbers) == 5 and all(0 < v < 90 for v in numbers[:4]) and numbers[4] > 0
-    bad = run("eval-normals", "--data", test_split, "--weights", "cv=x.safetensors", ok=False)
+    bad = run("eval-normals", "--data", two_scene_split, "--weights", "cv=x.safetensors", ok=False)
     assert bad.returncode == 2 and "VARIANT=PATH" in bad.stderr
 
 
