@@ -46,6 +46,30 @@ def map_in_processes(func: Callable[[Any], Any], tasks: Iterable, workers: int,
                 os.environ[v] = old
 
 
+def map_scenes(evaluation_class: Callable[..., Any], args: tuple, indices: list[int], workers: int,
+               device: str = "cpu") -> Iterator[Any]:
+    """Yield evaluation_class(*args, device=device).scene(i) for every scene index: in this process
+    in order when one worker is asked for (or `device` is not the CPU), else from `workers` spawned
+    processes (see worker_count; 0: one per core) that each build the object once, in the order the
+    scenes finish. evaluation_class must be module-level (picklable)."""
+    workers = 1 if device != "cpu" else worker_count(workers, len(indices))
+    if workers == 1:
+        return map(evaluation_class(*args, device=device).scene, indices)
+    return map_in_processes(_scene_in_worker, indices, workers, _start_scene_worker, (evaluation_class, args))
+
+
+_WORKER_EVALUATION: Any = None  # the object map_scenes built in this worker process
+
+
+def _start_scene_worker(evaluation_class: Callable[..., Any], args: tuple) -> None:
+    global _WORKER_EVALUATION
+    _WORKER_EVALUATION = evaluation_class(*args)
+
+
+def _scene_in_worker(i: int) -> Any:
+    return _WORKER_EVALUATION.scene(i)
+
+
 def worker_count(workers: int | None, tasks: int) -> int:
     """workers None or 0: one per CPU core; never more than there are tasks (at least 1)."""
     workers = workers or os.cpu_count() or 1

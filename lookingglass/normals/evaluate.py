@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..parallel import map_in_processes, worker_count
+from ..parallel import map_scenes
 from ..progress import Reporter
 from .latent import LatentOptConfig, optimize_latent
 from .render_layer import comparable, render_layer
@@ -73,13 +73,7 @@ def evaluate_normals(dataset, weights: dict[str, Path], latent: LatentOptConfig 
     CPU only); the pooled statistics do not depend on it beyond float rounding."""
     reporter = reporter or Reporter(quiet=True)
     n = len(dataset) if not max_scenes else min(max_scenes, len(dataset))
-    args = (dataset, dict(weights), latent)
-    workers = 1 if device != "cpu" else worker_count(workers, n)
-    if workers == 1:
-        evaluation = _NormalEvaluation(*args, device=device)
-        per_scene = map(evaluation.scene, range(n))
-    else:
-        per_scene = map_in_processes(_scene_in_worker, range(n), workers, _start_worker, args)
+    per_scene = map_scenes(_NormalEvaluation, (dataset, dict(weights), latent), list(range(n)), workers, device)
     rows: dict[str, NormalErrors] = {}
     for scene_rows in reporter.track(per_scene, total=n, description="test scenes"):
         for name, errors in scene_rows.items():
@@ -121,18 +115,6 @@ class _NormalEvaluation:
         vh1 = sample["vh_n1"].to(device).float() * base["mask"].unsqueeze(1)
         rows["vh"].add(vh1, sample["vh_n2"].to(device).float(), base)
         return rows
-
-
-_WORKER_EVALUATION: _NormalEvaluation | None = None  # one per worker process
-
-
-def _start_worker(*args) -> None:
-    global _WORKER_EVALUATION
-    _WORKER_EVALUATION = _NormalEvaluation(*args)
-
-
-def _scene_in_worker(i: int) -> dict[str, NormalErrors]:
-    return _WORKER_EVALUATION.scene(i)
 
 
 def markdown_table(results: dict[str, dict]) -> str:

@@ -23,7 +23,7 @@ from ..metrics import shape_metrics
 from ..normals.latent import LatentOptConfig, optimize_latent
 from ..normals.render_layer import prediction_error_maps
 from ..normals.train import load_weights, scene_tensors
-from ..parallel import map_in_processes, worker_count
+from ..parallel import map_scenes
 from ..progress import Reporter
 from .stage import SurfaceConfig, surface_from_normals
 from .train import load_point_weights
@@ -54,12 +54,7 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
     finished = {record["index"] for record in scenes}
     todo = [i for i in range(n) if i not in finished]
     args = (dataset, weights, point_weights, tuple(strategies), latent, surface or SurfaceConfig())
-    workers = 1 if device != "cpu" else worker_count(workers, len(todo))
-    if workers == 1:
-        evaluation = _ShapeEvaluation(*args, device=device)
-        records = map(evaluation.scene, todo)
-    else:
-        records = map_in_processes(_scene_in_worker, todo, workers, _start_worker, args)
+    records = map_scenes(_ShapeEvaluation, args, todo, workers, device)
     for record in reporter.track(records, total=len(todo), description="test scenes"):
         scenes.append(record)
         if on_scene is not None:
@@ -116,18 +111,6 @@ class _ShapeEvaluation:
                 record[row] = _surface_metrics(hull, gt, frame, cams_cpu, *maps_cpu,
                                                dataclasses.replace(surface, strategy=strategy), pnet)
         return record
-
-
-_WORKER_EVALUATION: _ShapeEvaluation | None = None  # one per worker process
-
-
-def _start_worker(*args) -> None:
-    global _WORKER_EVALUATION
-    _WORKER_EVALUATION = _ShapeEvaluation(*args)
-
-
-def _scene_in_worker(i: int) -> dict:
-    return _WORKER_EVALUATION.scene(i)
 
 
 def summarize(scenes: list[dict]) -> dict:
