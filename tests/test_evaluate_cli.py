@@ -16,9 +16,9 @@ pytestmark = pytest.mark.skipif(shipped_weights(10)[0] is None or shipped_weight
 
 
 @pytest.fixture(scope="module")
-def test_split(tmp_path_factory):
-    root = tmp_path_factory.mktemp("evaluate")
-    run("generate", "--out", root, "--scenes", 1, "--split", "test", "--workers", 1, "--quiet")
+def two_scene_split(tmp_path_factory):
+    root = tmp_path_factory.mktemp("two_scenes")
+    run("generate", "--out", root, "--scenes", 2, "--split", "test", "--workers", 2, "--quiet")
     return root
 
 
@@ -35,60 +35,44 @@ def table_rows(stdout: str) -> dict[str, list[float]]:
     return rows
 
 
-def test_eval_shapes_scores_writes_json_and_resumes(test_split):
-    out = test_split / "shapes.json"
-    args = ["eval-shapes", "--data", test_split, "--latent-iterations", 0, "--strategies", "RE", "--json", out,
-            "--surface-points", 8192]  # fewer than the default 40 000: faster
-    first = run(*args)
+def test_eval_shapes_scores_writes_json_resumes_and_workers_agree(two_scene_split):
+    """Two worker processes score both scenes; a resumed run in one process keeps the finished scene
+    (marked) and redoes the other to the workers' figures up to float rounding."""
+    out = two_scene_split / "shapes.json"
+    args = ["eval-shapes", "--data", two_scene_split, "--latent-iterations", 0, "--strategies", "RE", "--json", out,
+            "--surface-points", 4096]  # fewer than the default 40 000: faster
+    first = run(*args, "--workers", 2)
     rows = table_rows(first.stdout)
-    assert set(rows) == {"vh", "vh+gt-normals", "normals-RE", "pnet-RE"}
+    names = {"vh", "vh+gt-normals", "normals-RE", "pnet-RE"}
+    assert set(rows) == names and all(math.isfinite(v) for r in rows.values() for v in r)
     saved = json.loads(out.read_text())
-    assert [s["index"] for s in saved["scenes"]] == [0] and saved["settings"]["strategies"] == ["RE"]
-    assert saved["settings"]["surface_points"] == 8192
+    assert [s["index"] for s in saved["scenes"]] == [0, 1] and saved["settings"]["strategies"] == ["RE"]
+    assert saved["settings"]["surface_points"] == 4096
     # the hull row is the metric of the stored hull against the stored ground truth
-    gt, hull = TransparentSceneDataset(test_split, "test", views=10).meshes(0)
-    assert saved["rows"]["vh"]["cd"] == pytest.approx(shape_metrics(hull, gt)["cd"], rel=1e-9)
+    gt, hull = TransparentSceneDataset(two_scene_split, "test", views=10).meshes(0)
+    assert saved["scenes"][0]["vh"]["cd"] == pytest.approx(shape_metrics(hull, gt)["cd"], rel=1e-9)
     # ground-truth normals mapped onto the hull's points: better normals than the hull's own
     assert saved["rows"]["vh+gt-normals"]["cdn_mean"] < saved["rows"]["vh"]["cdn_mean"]
-    assert all(math.isfinite(v) for r in rows.values() for v in r)
 
-    # resuming: scene 0 (the split's only one) is read back, not redone; a marked value proves it
+    # resuming in one process: scene 0 is read back, not redone (a marked value proves it); scene 1,
+    # dropped from the file, is redone and matches what the other worker process computed
     marked = json.loads(out.read_text())
+    marked["scenes"] = marked["scenes"][:1]
     marked["scenes"][0]["vh"]["cd"] = 123.0
     out.write_text(json.dumps(marked))
-    second = run(*args)
+    second = run(*args, "--workers", 1)
     said = " ".join(second.stderr.split())  # rich wraps long lines
     assert "resuming from" in said and "1 scene(s) done" in said
     again = json.loads(out.read_text())
-    assert again["scenes"] == marked["scenes"] and again["rows"]["vh"]["cd"] == 123.0
-    assert table_rows(second.stdout)["vh"][0] == 123.0 and table_rows(second.stdout)["pnet-RE"] == rows["pnet-RE"]
+    assert again["scenes"][0] == marked["scenes"][0] and [s["index"] for s in again["scenes"]] == [0, 1]
+    redone, by_worker = again["scenes"][1], saved["scenes"][1]
+    assert set(redone) == set(by_worker) == {"index", *names}
+    for row in names:
+        for metric, value in by_worker[row].items():
+            assert redone[row][metric] == pytest.approx(value, rel=1e-3), (row, metric)
 
     other = run(*args[:-6], "--strategies", "NE", "--json", out, ok=False)
     assert other.returncode == 2 and "other settings" in other.stderr and "Traceback" not in other.stderr
-
-
-@pytest.fixture(scope="module")
-def two_scene_split(tmp_path_factory):
-    root = tmp_path_factory.mktemp("two_scenes")
-    run("generate", "--out", root, "--scenes", 2, "--split", "test", "--workers", 2, "--quiet")
-    return root
-
-
-def test_eval_shapes_workers_match_one_process(two_scene_split):
-    """--workers 2 (a process per scene; `generate` uses the same pool) gives the records of one
-    process, up to float rounding, for every scene and row."""
-    records = {}
-    for workers in (1, 2):
-        out = two_scene_split / f"w{workers}.json"
-        run("eval-shapes", "--data", two_scene_split, "--latent-iterations", 0, "--strategies", "RE", "--json", out,
-            "--surface-points", 4096, "--workers", workers, "--quiet")
-        records[workers] = json.loads(out.read_text())["scenes"]
-    assert [s["index"] for s in records[2]] == [0, 1]
-    for one, two in zip(records[1], records[2]):
-        assert set(one) == set(two) == {"index", "vh", "vh+gt-normals", "normals-RE", "pnet-RE"}
-        for row in ("vh", "vh+gt-normals", "normals-RE", "pnet-RE"):
-            for metric, value in one[row].items():
-                assert two[row][metric] == pytest.approx(value, rel=1e-3), (one["index"], row, metric)
 
 
 def test_eval_normals_prints_table_1_and_workers_match_one_process(two_scene_split):
@@ -109,7 +93,8 @@ def test_eval_normals_prints_table_1_and_workers_match_one_process(two_scene_spl
     assert bad.returncode == 2 and "VARIANT=PATH" in bad.stderr
 
 
-def test_surface_points_out_of_range_is_a_clear_error(test_split):
-    for command in (["eval-shapes", "--data", test_split], ["reconstruct", test_split, "--out", test_split / "o"]):
+def test_surface_points_out_of_range_is_a_clear_error(two_scene_split):
+    root = two_scene_split
+    for command in (["eval-shapes", "--data", root], ["reconstruct", root, "--out", root / "o"]):
         proc = run(*command, "--surface-points", 10, ok=False)
         assert proc.returncode == 2 and "--surface-points must be in" in proc.stderr and "Traceback" not in proc.stderr
