@@ -159,7 +159,9 @@ def check_initial_weights(path: str | os.PathLike, net_config: Any) -> None:
     """Refuse --init weights that are missing or made for another network config (checked
     before a trainer spends time on anything else). Keys the config class lists in
     `FINE_TUNE_FREE` (settings that change no parameter, e.g. the normal net's view count) may
-    differ: such weights start the new run, which keeps its own setting."""
+    differ: such weights start the new run, which keeps its own setting. Keys in
+    `FINE_TUNE_WIDEN` (input widths) may grow, never shrink: the net's `widen_initial_state`
+    fits the weights (load_initial_weights)."""
     path = Path(path)
     meta_path = path.with_suffix(".json")
     for p in (path, meta_path):
@@ -172,7 +174,9 @@ def check_initial_weights(path: str | os.PathLike, net_config: Any) -> None:
         raise LookingGlassError(f"cannot read the network config ({exc})", meta_path) from None
     wanted = json.loads(json.dumps(dataclasses.asdict(net_config)))
     free = getattr(type(net_config), "FINE_TUNE_FREE", frozenset())
-    changed = [k for k in _changed_keys(saved, wanted) if k not in free]
+    widen = getattr(type(net_config), "FINE_TUNE_WIDEN", frozenset())
+    changed = [k for k in _changed_keys(saved, wanted)
+               if k not in free and not (k in widen and int(saved.get(k) or 0) <= int(wanted[k]))]
     if changed:
         raise LookingGlassError(f"the --init weights are for another network (differs in "
                                 f"{', '.join(changed)})", meta_path)
@@ -183,7 +187,11 @@ def load_initial_weights(net: nn.Module, path: str | os.PathLike) -> str:
     weights.json records."""
     check_initial_weights(path, net.cfg)
     try:
-        net.load_state_dict(load_file(str(path)))
+        state = load_file(str(path))
+        saved = json.loads(Path(path).with_suffix(".json").read_text())["net"]
+        if hasattr(net, "widen_initial_state"):
+            state = net.widen_initial_state(state, saved.get("in_features", net.cfg.in_features))
+        net.load_state_dict(state)
     except Exception as exc:
         raise LookingGlassError(f"cannot load the --init weights ({exc})", path) from None
     return sha256_file(path)

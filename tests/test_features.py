@@ -16,9 +16,9 @@ from scipy.spatial import cKDTree
 
 from lookingglass.data.rigs import paper_rig
 from lookingglass.physics.camera import Cameras
-from lookingglass.points.features import (FEATURE_COLUMNS, NUM_FEATURES, UNSEEN_COS, UNSEEN_ERROR,
-                                          UNSEEN_TIR, map_features, sample_hull_points,
-                                          select_nearest, select_rendering_error)
+from lookingglass.points.features import (FEATURE_COLUMNS, NUM_FEATURES, SILHOUETTE_OFFSETS, UNSEEN_COS,
+                                          UNSEEN_ERROR, UNSEEN_TIR, map_features, sample_hull_points,
+                                          select_nearest, select_rendering_error, silhouette_counts)
 
 W, H = 64, 48
 
@@ -364,6 +364,8 @@ def test_unseen_points_keep_hull_normal_and_feature_layout():
         for key in ("normal", "error", "tir", "cos"):
             col = f[:, FEATURE_COLUMNS[key]]
             np.testing.assert_array_equal(col.numpy(), out[key].reshape(len(pts), -1).numpy())
+        cones = silhouette_counts(pts, nrm, cams, mask).float()
+        np.testing.assert_array_equal(f[:, FEATURE_COLUMNS["silhouette"]].numpy(), cones.numpy())
         unseen = ~out["seen"]
         assert unseen.sum() > 300  # the far hemisphere
         np.testing.assert_allclose(out["normal"][unseen].numpy(), nrm[unseen.numpy()], atol=1e-6)
@@ -371,6 +373,36 @@ def test_unseen_points_keep_hull_normal_and_feature_layout():
         assert (out["cos"][unseen] == UNSEEN_COS).all() and (out["chosen_view"][unseen] == -1).all()
         assert (out["visible_count"][unseen] == 0).all()
         assert torch.allclose(out["error"][~unseen], torch.tensor(0.3), atol=1e-6)
+
+
+def test_silhouette_counts_match_the_cones_of_the_sphere(scene):
+    """Pushed out by eps, a point of the unit sphere leaves view v's silhouette exactly when the
+    ray from v's camera through it makes a larger angle with the centre than the sphere's
+    silhouette cone. Where that angle is over 1.5 pixels from the cone's, all bilinear taps of the
+    mask (within sqrt(2) pixels) agree, so view v adds exactly 0 or 1; a closer view adds
+    something in [0, 1]. The count must lie between those bounds for every point (at 512 x 384,
+    where the largest eps moves a rim point ~6 pixels, the bounds are tight)."""
+    cams = scene["cams"].with_resolution(512, 384)
+    _, mask, _ = sphere_maps(cams)
+    g = torch.Generator().manual_seed(4)
+    u = torch.nn.functional.normalize(torch.randn(3000, 3, generator=g, dtype=torch.float64), dim=-1)
+    counts = silhouette_counts(u, u, cams, mask)
+    assert counts.shape == (3000, len(SILHOUETTE_OFFSETS))
+    pixel_angle = float(2 * cams.tan_half_fov_x.max() / cams.width)  # the largest, at the image centre
+    dist = cams.origin.norm(dim=-1)[:, None]  # (V, 1)
+    half_angle = torch.asin(1 / dist)  # the cone's
+    to_centre = -cams.origin[:, None] / dist[..., None]
+    for k, eps in enumerate(SILHOUETTE_OFFSETS):
+        ray = torch.nn.functional.normalize((1 + eps) * u[None] - cams.origin[:, None], dim=-1)  # (V, N, 3)
+        beyond = torch.acos((ray * to_centre).sum(-1).clamp(-1, 1)) - half_angle
+        near = beyond.abs() <= 1.5 * pixel_angle
+        lower = (beyond > 0).logical_and(~near).sum(0).double()
+        upper = lower + near.sum(0)
+        assert ((counts[:, k] >= lower - 1e-9) & (counts[:, k] <= upper + 1e-9)).all(), eps
+    # Tight and informative at the largest offset: most points clearly leave two views or more.
+    assert (upper - lower).mean() < 0.7 and (lower >= 2).float().mean() > 0.6
+    # Farther out, no fewer cones are left.
+    assert (counts[:, 1:] >= counts[:, :-1] - 1e-9).all()
 
 
 def test_rejects_bad_input(scene):

@@ -13,7 +13,7 @@ import torch
 import trimesh
 
 from lookingglass.points import model as pm
-from lookingglass.points.features import FEATURE_COLUMNS, NUM_FEATURES
+from lookingglass.points.features import FEATURE_COLUMNS, NUM_FEATURES, PAPER_FEATURES
 from lookingglass.points.losses import (LOSSES, chamfer_loss, nearest_l2_loss, view_dependent_l2_loss,
                                         view_targets)
 from lookingglass.points.model import (PointNet, PointNetConfig, ball_members, ball_query, cpu_config,
@@ -213,6 +213,25 @@ def test_residual_starts_at_the_hull():
     torch.testing.assert_close(normal, x[..., FEATURE_COLUMNS["normal"]], atol=1e-6, rtol=0)
 
 
+def test_widened_net_is_the_same_function_and_reads_the_new_columns():
+    """widen_initial_state: a net for the paper's 12 columns, widened to NUM_FEATURES, computes
+    the same function (new input weights zero) and the narrow net ignores extra columns; once the
+    new weights move, the silhouette columns change the output."""
+    torch.manual_seed(3)
+    narrow = PointNet(tiny_config(in_features=PAPER_FEATURES)).eval()
+    wide = PointNet(tiny_config()).eval()
+    wide.load_state_dict(wide.widen_initial_state(narrow.state_dict(), PAPER_FEATURES))
+    x = sphere_features(300, seed=8, noise=0.2)
+    x[..., FEATURE_COLUMNS["silhouette"]] = torch.rand(1, 300, NUM_FEATURES - PAPER_FEATURES) * 5
+    with torch.no_grad():
+        for a, b in zip(narrow(x), wide(x)):  # float32: wider matmuls sum in another order
+            torch.testing.assert_close(a, b, rtol=0, atol=1e-5)
+        wide.sa[0].mlp[0].weight[:, -1] = 0.5
+        assert (wide(x)[0] - narrow(x)[0]).abs().max() > 1e-3
+    with pytest.raises(ValueError, match="narrow"):
+        narrow.widen_initial_state(wide.state_dict(), NUM_FEATURES)
+
+
 def test_presets():
     paper, cpu = paper_config(), cpu_config()
     assert pm.PRESETS["paper"]().centres == (1024, 256, 64, 16)
@@ -221,7 +240,10 @@ def test_presets():
     assert paper.offset_scale == 0.25 and paper.in_features == NUM_FEATURES
     assert paper.average_pooling and paper.normal_difference and paper.normal_skip and not paper.residual
     net = PointNet(paper)
-    assert [level.mlp[0].in_features for level in net.sa] == [18, 70, 134, 262]
+    assert [level.mlp[0].in_features for level in net.sa] == [6 + NUM_FEATURES, 70, 134, 262]
+    # The paper's input (12 columns, 18 inputs to the first MLP) reads the first 12 columns only.
+    paper_input = PointNet(paper_config(in_features=PAPER_FEATURES))
+    assert paper_input.sa[0].mlp[0].in_features == 18
     assert [level.mlp[-3].out_features for level in net.sa] == [64, 128, 256, 512]
     assert net.head.in_features == 64 and net.head.out_features == 6
     assert cpu.num_points == 4096 and cpu.centres == (512, 128, 32, 8) and cpu.residual

@@ -19,7 +19,7 @@ from lookingglass.data.torch_dataset import TransparentSceneDataset
 from lookingglass.errors import LookingGlassError
 from lookingglass.normals.model import cpu_config as normal_cpu_config
 from lookingglass.normals.train import TrainConfig, load_weights, train_normals
-from lookingglass.points.features import NUM_FEATURES
+from lookingglass.points.features import FEATURE_COLUMNS, NUM_FEATURES, PAPER_FEATURES
 from lookingglass.points.model import PointNetConfig
 from lookingglass.points.train import (PointTrainConfig, load_point_weights, prepare_features, point_train_preset,
                                        train_points)
@@ -96,19 +96,35 @@ def test_resume_after_interruption_is_exact(tiny, tmp_path):
 
 def test_init_starts_from_given_weights(tiny, tmp_path):
     """--init: a run starts from another run's weights (lr 0 keeps them exactly), records their
-    SHA-256, and refuses weights of another network."""
+    SHA-256, and refuses weights of another network. Weights for the paper's 12 input columns
+    start a net that also reads the silhouette counts, with zero weights for the new columns:
+    the same function; never the other way round."""
     data, normals = tiny
     ds = TransparentSceneDataset(data, "train", augment=False)
     base = tmp_path / "base"
-    train_points(ds, base, _config(epochs=2), normals)
+    narrow = _config(epochs=2)
+    narrow.net = dataclasses.replace(narrow.net, in_features=PAPER_FEATURES)
+    train_points(ds, base, narrow, normals)
     init = base / "weights.safetensors"
     shutil.copytree(base / "features", tmp_path / "tuned" / "features")
     tuned = dataclasses.replace(_config(epochs=1), lr=0.0, init=str(init))
+    assert tuned.net.in_features == NUM_FEATURES > PAPER_FEATURES
     train_points(ds, tmp_path / "tuned", tuned, normals)
-    a = load_point_weights(init).state_dict()
-    b = load_point_weights(tmp_path / "tuned" / "weights.safetensors").state_dict()
-    for k in a:
-        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
+    a, b = load_point_weights(init), load_point_weights(tmp_path / "tuned" / "weights.safetensors")
+    sa, sb = a.state_dict(), b.state_dict()
+    widened = {"sa.0.mlp.0.weight", f"fp.{len(b.fp) - 1}.mlp.0.weight"}
+    for k in sa:
+        if k not in widened:
+            torch.testing.assert_close(sa[k], sb[k], rtol=0, atol=0)
+        else:  # PAPER_FEATURES - NUM_FEATURES new zero columns, the rest as they were
+            assert sb[k].shape[1] == sa[k].shape[1] + NUM_FEATURES - PAPER_FEATURES
+            assert (sb[k] != 0).any(0).sum() == (sa[k] != 0).any(0).sum()
+    with np.load(next((base / "features").glob("scene_*.npz"))) as z:
+        features = torch.from_numpy(z["features"])[None]
+    assert features[..., FEATURE_COLUMNS["silhouette"]].abs().sum() > 0  # the new columns carry data
+    with torch.no_grad():
+        for x, y in zip(a(features), b(features)):  # float32: wider matmuls sum in another order
+            torch.testing.assert_close(x, y, rtol=0, atol=1e-5)
     meta = json.loads((tmp_path / "tuned" / "weights.json").read_text())
     assert meta["init_sha256"] == hashlib.sha256(init.read_bytes()).hexdigest()
     # Starting from them at a working rate continues below where the base run ended.
@@ -120,9 +136,17 @@ def test_init_starts_from_given_weights(tiny, tmp_path):
     other.net = dataclasses.replace(other.net, sa_mlps=((8, 8), (32, 32)))
     with pytest.raises(LookingGlassError, match="another network .*sa_mlps"):
         train_points(ds, tmp_path / "other", other, normals)
+    fewer = dataclasses.replace(narrow, init=str(tmp_path / "tuned" / "weights.safetensors"))
+    with pytest.raises(LookingGlassError, match="another network .*in_features"):
+        train_points(ds, tmp_path / "fewer", fewer, normals)
     with pytest.raises(LookingGlassError, match="--init weights not found"):
         train_points(ds, tmp_path / "missing", dataclasses.replace(_config(epochs=1), init=str(tmp_path / "x.safetensors")),
                      normals)
+    # A cache made before the silhouette columns existed is refused, not mixed.
+    source = base / "features" / "source.json"
+    source.write_text(json.dumps({k: v for k, v in json.loads(source.read_text()).items() if k != "feature_columns"}))
+    with pytest.raises(LookingGlassError, match="feature columns"):
+        train_points(ds, base, narrow, normals)
 
 
 def test_view_loss_targets(tiny, tmp_path):

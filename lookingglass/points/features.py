@@ -34,6 +34,16 @@ Choices the paper leaves open:
   a bilinear fetch of a binary map only meets exactly away from TIR borders.
 - Points no view sees keep the hull normal and Algorithm 1's initial values (I_er = 2, M_tr = 1,
   C = 0) under every strategy, and are flagged `seen = False`.
+
+Ours, not the paper's: silhouette-cone counts (columns "silhouette"). Every hull point lies on
+the cone of at least one view's silhouette; where it also lies near the cones of other views, the
+hull is tight there (measured on our test split: hull points that leave the silhouette in >= 2
+views when pushed out by 0.02 lie about half as far from the true surface as those that leave it
+in one; docs/results.md, "What limits the shape"). Per offset eps of SILHOUETTE_OFFSETS the column
+counts the views in which p + eps * (hull normal) falls outside the object mask, with the mask read
+bilinearly (so the count moves smoothly with the point) and a projection behind the camera or off
+the image counting as outside. Nets trained on the paper's 12 columns read only those (PNet takes
+the first `in_features` columns).
 """
 
 from __future__ import annotations
@@ -53,11 +63,14 @@ __all__ = [
     "STRATEGIES",
     "FEATURE_COLUMNS",
     "NUM_FEATURES",
+    "PAPER_FEATURES",
     "UNSEEN_ERROR",
     "UNSEEN_TIR",
     "UNSEEN_COS",
+    "SILHOUETTE_OFFSETS",
     "sample_hull_points",
     "map_features",
+    "silhouette_counts",
     "select_nearest",
     "select_rendering_error",
 ]
@@ -65,7 +78,9 @@ __all__ = [
 STRATEGIES = ("AV", "NE", "RE")
 
 # Column layout of map_features(...)["features"] (N, NUM_FEATURES), world frame:
-# point xyz | hull normal | mapped N1 | rendering error | TIR | view cosine.
+# point xyz | hull normal | mapped N1 | rendering error | TIR | view cosine (the paper's 12) |
+# silhouette-cone counts (ours, one per SILHOUETTE_OFFSETS).
+SILHOUETTE_OFFSETS = (0.01, 0.02, 0.04)  # hull-normalized units (the hull's radius is 1)
 FEATURE_COLUMNS: dict[str, slice] = {
     "point": slice(0, 3),
     "hull_normal": slice(3, 6),
@@ -73,8 +88,10 @@ FEATURE_COLUMNS: dict[str, slice] = {
     "error": slice(9, 10),
     "tir": slice(10, 11),
     "cos": slice(11, 12),
+    "silhouette": slice(12, 12 + len(SILHOUETTE_OFFSETS)),
 }
-NUM_FEATURES = 12
+PAPER_FEATURES = 12  # the paper's columns, before "silhouette"
+NUM_FEATURES = 12 + len(SILHOUETTE_OFFSETS)
 
 # Algorithm 1's initial values, kept by points that no (usable) view sees.
 UNSEEN_ERROR = 2.0
@@ -212,6 +229,28 @@ def _unoccluded(caster: RayCaster, origins: Tensor, points: Tensor, candidates: 
     return out
 
 
+def silhouette_counts(points, hull_normals, cameras: Cameras, mask,
+                      offsets: tuple[float, ...] = SILHOUETTE_OFFSETS) -> Tensor:
+    """Per point and offset eps, the number of views whose object mask does not hold
+    p + eps * n (see the module docstring): sum over views of 1 - (bilinear mask value there),
+    1 for projections behind the camera or off the image.
+
+    points, hull_normals: (N, 3) world, the normals unit and outward. cameras: V views at the
+    mask's W x H. mask: (V, H, W) bool or numbers > 0.5. offsets: K world distances.
+    Returns (N, K) float64 on the CPU, each in [0, V].
+    """
+    p = _as_cpu64(points).reshape(-1, 3)
+    n = F.normalize(_as_cpu64(hull_normals).reshape(-1, 3), dim=-1)
+    cams = cameras.to(device="cpu", dtype=torch.float64)
+    m = _as_cpu_bool(mask).to(torch.float64)[:, None]  # (V, 1, H, W)
+    columns = []
+    for eps in offsets:
+        xy, depth = cams.project(p + float(eps) * n)
+        held = _fetch(m, xy, cams.width, cams.height)[..., 0] * (depth > 0)  # (V, N); off-image taps read 0
+        columns.append((1.0 - held).sum(0))
+    return torch.stack(columns, dim=1) if columns else p.new_zeros((p.shape[0], 0))
+
+
 def map_features(points, hull_normals, hull_mesh: trimesh.Trimesh | RayCaster, cameras: Cameras,
                  n1_cam, error, tir, mask, strategy: str = "RE",
                  occlusion_tolerance: float = 0.01) -> dict[str, Tensor]:
@@ -235,7 +274,8 @@ def map_features(points, hull_normals, hull_mesh: trimesh.Trimesh | RayCaster, c
       chosen_view (N,)     int64, the view taken (NE, RE); -1 for AV, for unseen points, and for
                            RE points whose only visible views have TIR and C_v <= 0
       seen (N,)            bool, visible_count > 0
-      features (N, 12)     [point, hull normal, normal, error, tir, cos]; see FEATURE_COLUMNS
+      features (N, NUM_FEATURES) [point, hull normal, normal, error, tir, cos, silhouette counts];
+                           see FEATURE_COLUMNS
       view_visible (V, N)  bool, V_v(p)
       view_normal (V, N, 3) world N1 fetched from each view (meaningless where not visible)
       view_error (V, N), view_tir (V, N) bool, view_cos (V, N): the per-view fetches
@@ -317,7 +357,8 @@ def map_features(points, hull_normals, hull_mesh: trimesh.Trimesh | RayCaster, c
                               torch.full((N,), UNSEEN_TIR, dtype=torch.float64))
         cos_out = torch.where(has, pick(view_cos), torch.full((N,), UNSEEN_COS, dtype=torch.float64))
 
-    features = torch.cat([p, hn, normal, err_out[:, None], tir_out[:, None], cos_out[:, None]], dim=1)
+    cones = silhouette_counts(p, hn, cams, obj)
+    features = torch.cat([p, hn, normal, err_out[:, None], tir_out[:, None], cos_out[:, None], cones], dim=1)
     f32 = lambda a: a.to(device=device, dtype=torch.float32)  # noqa: E731
     return {
         "normal": f32(normal),

@@ -13,9 +13,11 @@ One implementation; the supplement's ablation (its table "standard, - maxPooling
 
 Input. `forward(features)` takes (B, N, C) world-frame features in the column layout of
 lookingglass.points.features.FEATURE_COLUMNS: xyz at 0:3 (the hull point p̃), the hull normal at
-3:6, the mapped (predicted) normal N1 at 6:9, then rendering error, TIR and view cosine. xyz
-drives sampling and grouping; the mapped normal is "the normal" of the three switches; all C
-columns are the level-0 point features. Points are expected at the unit-sphere scale of the
+3:6, the mapped (predicted) normal N1 at 6:9, then rendering error, TIR and view cosine (the
+paper's 12 columns), then our silhouette-cone counts. The net reads the first `in_features`
+columns (PAPER_FEATURES = 12: the paper's input; NUM_FEATURES: with the counts), so nets made for
+fewer columns run on today's features. xyz drives sampling and grouping; the mapped normal is
+"the normal" of the three switches; all read columns are the level-0 point features. Points are expected at the unit-sphere scale of the
 normalized frame (the radii 0.1 ... 0.8 are in its units).
 
 Layout. Tensors are channels-last, (B, N, C); a per-point MLP layer is Linear (no bias) ->
@@ -30,6 +32,8 @@ Choices the paper leaves open (ours):
 - Feature-propagation widths (coarse to fine) (512, 256), (256, 128), (128, 64), (64,), then a
   linear head to 6 = offset (3) + normal (3); 3-NN interpolation with inverse squared distance
   weights (as PointNet++).
+- Fine-tuning onto more input columns (`widen_initial_state`): the new columns' input weights
+  start at zero, so the widened net starts as the function it was trained to be.
 - `residual` (cpu preset): the last layer is zero-initialized and the normal is
   normalize(mapped normal + raw), so an untrained net returns the hull points and the mapped
   normals and training spends its steps on corrections (as NormalNetConfig.residual).
@@ -85,6 +89,9 @@ class PointNetConfig:
     num_points: the points the stage samples on the hull per shape (the net accepts any N;
     a level with more centres than points keeps all of them).
     """
+
+    # Weights for fewer input columns may start a fine-tune (PointNet.widen_initial_state).
+    FINE_TUNE_WIDEN = frozenset({"in_features"})
 
     in_features: int = NUM_FEATURES
     num_points: int = 20000
@@ -436,8 +443,9 @@ class PointNet(nn.Module):
             nn.init.zeros_(self.head.bias)
 
     def forward(self, features: Tensor) -> tuple[Tensor, Tensor]:
-        if features.dim() != 3 or features.shape[-1] != self.cfg.in_features:
-            raise ValueError(f"expected features (B, N, {self.cfg.in_features}), got {tuple(features.shape)}")
+        if features.dim() != 3 or features.shape[-1] < self.cfg.in_features:
+            raise ValueError(f"expected features (B, N, >= {self.cfg.in_features}), got {tuple(features.shape)}")
+        features = features[..., :self.cfg.in_features]
         xyz = features[..., XYZ_COLUMNS].contiguous()
         normals = F.normalize(features[..., NORMAL_COLUMNS], dim=-1, eps=1e-6)
         levels = [(xyz, normals, features)]
@@ -454,6 +462,24 @@ class PointNet(nn.Module):
         if self.cfg.residual:
             raw = normals + torch.tanh(raw)
         return offset, F.normalize(raw, dim=-1, eps=1e-6)
+
+    def widen_initial_state(self, state: dict[str, Tensor], saved_in_features: int) -> dict[str, Tensor]:
+        """`state` of a net like this one but for `saved_in_features` <= cfg.in_features input
+        columns, with zero input weights added for the new columns. The level-0 features enter
+        two layers: the first SA MLP, where they are the last inputs, and the last FP MLP, where
+        they are the skip link, before the normals when normal_skip is on."""
+        extra = self.cfg.in_features - int(saved_in_features)
+        if extra < 0:
+            raise ValueError(f"cannot narrow {saved_in_features} input columns to {self.cfg.in_features}")
+        if extra == 0:
+            return state
+        state = dict(state)
+        tail = 6 if self.cfg.normal_skip else 0
+        for key, after in (("sa.0.mlp.0.weight", 0), (f"fp.{len(self.fp) - 1}.mlp.0.weight", tail)):
+            w = state[key]
+            at = w.shape[1] - after
+            state[key] = torch.cat([w[:, :at], w.new_zeros(w.shape[0], extra), w[:, at:]], dim=1)
+        return state
 
     def refine(self, features: Tensor) -> tuple[Tensor, Tensor]:
         """The refined cloud: points p = p̃ + δp̃ (B, N, 3) and unit normals (B, N, 3), world."""

@@ -23,7 +23,8 @@ the numbers `carve_visual_hull` returned), because that is the frame the pipelin
 in at inference (points/stage.py). Ground truth and cameras are moved into it too.
 
 Cached arrays (float32 unless noted; N = cfg.net.num_points, world = hull-normalized frame):
-  features         (N, 12)  features.FEATURE_COLUMNS: p̃, hull normal, mapped N1, error, TIR, cos
+  features         (N, NUM_FEATURES)  features.FEATURE_COLUMNS: p̃, hull normal, mapped N1, error, TIR,
+                   cos, silhouette-cone counts (the net reads its first in_features)
   gt_points, gt_normals        (N, 3)  chamfer: even samples of the GT surface, face normals
   nearest_points, nearest_normals (N, 3)  nearest, view: the exact closest GT surface point to
                                        each p̃ and the smooth normal there
@@ -58,7 +59,7 @@ from ..normals.render_layer import prediction_error_maps
 from ..normals.train import load_weights, scene_tensors
 from ..progress import Reporter
 from ..threads import torch_threads
-from .features import FEATURE_COLUMNS, STRATEGIES, map_features, sample_hull_points
+from .features import FEATURE_COLUMNS, NUM_FEATURES, STRATEGIES, map_features, sample_hull_points
 from .losses import LOSSES, PointLoss, view_targets
 from .model import PRESETS, PointNet, PointNetConfig
 
@@ -156,7 +157,7 @@ def scene_point_data(normal_net: NormalNet, sample: dict, gt_mesh: trimesh.Trime
     gt_mesh, hull_mesh: the ground truth and the visual hull, dataset world frame. center (3,),
     scale: the hull normalization, p_n = (p - center) / scale. seed: point sampling.
     Returns float32 numpy arrays (bool for view_valid) in the hull-normalized frame: "features"
-    (N, 12) and TARGET_KEYS[config.loss] (see the module docstring).
+    (N, NUM_FEATURES) and TARGET_KEYS[config.loss] (see the module docstring).
     """
     center = np.asarray(center, np.float64)
     scale = float(scale)
@@ -209,9 +210,10 @@ def load_scene_arrays(path: Path, loss: str) -> dict[str, np.ndarray]:
 def _check_source(run_dir: Path, normals: Path, views: int, rank: int) -> str:
     """Record (or compare) the normal weights the cache is made from; returns their SHA-256."""
     digest = sha256_file(normals)
-    source = {"normals_sha256": digest, "views": views}
+    source = {"normals_sha256": digest, "views": views, "feature_columns": NUM_FEATURES}
     training.record_or_compare(run_dir / FEATURE_DIR / "source.json", source, rank,
-                               "the cached point features were made with other normal weights or views",
+                               "the cached point features were made with other normal weights, views "
+                               "or feature columns",
                                "use a new --out or the same --normals")
     return digest
 
@@ -309,7 +311,7 @@ def train_points(dataset, run_dir: str | os.PathLike, config: PointTrainConfig, 
         def step(model: torch.nn.Module, index: int, global_step: int) -> tuple[Tensor, dict[str, float]]:
             arrays = load_scene_arrays(feature_path(run_dir, dataset, index), config.loss)
             batch = {k: torch.from_numpy(arrays[k]).unsqueeze(0).to(device) for k in keys}
-            features = batch["features"]  # (1, N, 12)
+            features = batch["features"]  # (1, N, NUM_FEATURES)
             offset, normal = model(features)
             loss = point_loss(config.loss, features[..., xyz] + offset, normal, batch)
             with torch.no_grad():  # the input itself: hull points with the mapped normals
