@@ -155,13 +155,13 @@ def load_weights(path: str | os.PathLike, config_cls: type, net_cls: Callable[[A
     return net.eval(), meta
 
 
-def check_initial_weights(path: str | os.PathLike, net_config: Any) -> None:
+def check_initial_weights(path: str | os.PathLike, net_config: Any) -> dict:
     """Refuse --init weights that are missing or made for another network config (checked
     before a trainer spends time on anything else). Keys the config class lists in
     `FINE_TUNE_FREE` (settings that change no parameter, e.g. the normal net's view count) may
     differ: such weights start the new run, which keeps its own setting. Keys in
     `FINE_TUNE_WIDEN` (input widths) may grow, never shrink: the net's `widen_initial_state`
-    fits the weights (load_initial_weights)."""
+    fits the weights (load_initial_weights). Returns the saved network config (weights.json "net")."""
     path = Path(path)
     meta_path = path.with_suffix(".json")
     for p in (path, meta_path):
@@ -180,17 +180,17 @@ def check_initial_weights(path: str | os.PathLike, net_config: Any) -> None:
     if changed:
         raise LookingGlassError(f"the --init weights are for another network (differs in "
                                 f"{', '.join(changed)})", meta_path)
+    return saved
 
 
 def load_initial_weights(net: nn.Module, path: str | os.PathLike) -> str:
     """Load --init weights into `net` (checked first); returns the file's SHA-256, which the new
     weights.json records."""
-    check_initial_weights(path, net.cfg)
+    saved = check_initial_weights(path, net.cfg)
     try:
         state = load_file(str(path))
-        saved = json.loads(Path(path).with_suffix(".json").read_text())["net"]
         if hasattr(net, "widen_initial_state"):
-            state = net.widen_initial_state(state, saved.get("in_features", net.cfg.in_features))
+            state = net.widen_initial_state(state, saved)
         net.load_state_dict(state)
     except Exception as exc:
         raise LookingGlassError(f"cannot load the --init weights ({exc})", path) from None

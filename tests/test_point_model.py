@@ -220,7 +220,7 @@ def test_widened_net_is_the_same_function_and_reads_the_new_columns():
     torch.manual_seed(3)
     narrow = PointNet(tiny_config(in_features=PAPER_FEATURES)).eval()
     wide = PointNet(tiny_config()).eval()
-    wide.load_state_dict(wide.widen_initial_state(narrow.state_dict(), PAPER_FEATURES))
+    wide.load_state_dict(wide.widen_initial_state(narrow.state_dict(), {"in_features": PAPER_FEATURES}))
     x = sphere_features(300, seed=8, noise=0.2)
     x[..., FEATURE_COLUMNS["silhouette"]] = torch.rand(1, 300, NUM_FEATURES - PAPER_FEATURES) * 5
     with torch.no_grad():
@@ -229,7 +229,7 @@ def test_widened_net_is_the_same_function_and_reads_the_new_columns():
         wide.sa[0].mlp[0].weight[:, -1] = 0.5
         assert (wide(x)[0] - narrow(x)[0]).abs().max() > 1e-3
     with pytest.raises(ValueError, match="narrow"):
-        narrow.widen_initial_state(wide.state_dict(), NUM_FEATURES)
+        narrow.widen_initial_state(wide.state_dict(), {"in_features": NUM_FEATURES})
 
 
 def test_presets():

@@ -81,6 +81,8 @@ STRATEGIES = ("AV", "NE", "RE")
 # point xyz | hull normal | mapped N1 | rendering error | TIR | view cosine (the paper's 12) |
 # silhouette-cone counts (ours, one per SILHOUETTE_OFFSETS).
 SILHOUETTE_OFFSETS = (0.01, 0.02, 0.04)  # hull-normalized units (the hull's radius is 1)
+PAPER_FEATURES = 12  # the paper's columns, before "silhouette"
+NUM_FEATURES = PAPER_FEATURES + len(SILHOUETTE_OFFSETS)
 FEATURE_COLUMNS: dict[str, slice] = {
     "point": slice(0, 3),
     "hull_normal": slice(3, 6),
@@ -88,10 +90,8 @@ FEATURE_COLUMNS: dict[str, slice] = {
     "error": slice(9, 10),
     "tir": slice(10, 11),
     "cos": slice(11, 12),
-    "silhouette": slice(12, 12 + len(SILHOUETTE_OFFSETS)),
+    "silhouette": slice(PAPER_FEATURES, NUM_FEATURES),
 }
-PAPER_FEATURES = 12  # the paper's columns, before "silhouette"
-NUM_FEATURES = 12 + len(SILHOUETTE_OFFSETS)
 
 # Algorithm 1's initial values, kept by points that no (usable) view sees.
 UNSEEN_ERROR = 2.0

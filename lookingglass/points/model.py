@@ -17,8 +17,8 @@ lookingglass.points.features.FEATURE_COLUMNS: xyz at 0:3 (the hull point p̃), t
 paper's 12 columns), then our silhouette-cone counts. The net reads the first `in_features`
 columns (PAPER_FEATURES = 12: the paper's input; NUM_FEATURES: with the counts), so nets made for
 fewer columns run on today's features. xyz drives sampling and grouping; the mapped normal is
-"the normal" of the three switches; all read columns are the level-0 point features. Points are expected at the unit-sphere scale of the
-normalized frame (the radii 0.1 ... 0.8 are in its units).
+"the normal" of the three switches; all read columns are the level-0 point features. Points are
+expected at the unit-sphere scale of the normalized frame (the radii 0.1 ... 0.8 are in its units).
 
 Layout. Tensors are channels-last, (B, N, C); a per-point MLP layer is Linear (no bias) ->
 GroupNorm (channels per group `gn_group_size`; statistics per shape over all points and
@@ -463,12 +463,14 @@ class PointNet(nn.Module):
             raw = normals + torch.tanh(raw)
         return offset, F.normalize(raw, dim=-1, eps=1e-6)
 
-    def widen_initial_state(self, state: dict[str, Tensor], saved_in_features: int) -> dict[str, Tensor]:
-        """`state` of a net like this one but for `saved_in_features` <= cfg.in_features input
-        columns, with zero input weights added for the new columns. The level-0 features enter
+    def widen_initial_state(self, state: dict[str, Tensor], saved_config: dict) -> dict[str, Tensor]:
+        """`state` of a net like this one but made with `saved_config` (its weights.json "net")
+        for in_features <= cfg.in_features input columns, with zero input weights added for the
+        new columns. The level-0 features enter
         two layers: the first SA MLP, where they are the last inputs, and the last FP MLP, where
         they are the skip link, before the normals when normal_skip is on."""
-        extra = self.cfg.in_features - int(saved_in_features)
+        saved_in_features = int(saved_config.get("in_features", self.cfg.in_features))
+        extra = self.cfg.in_features - saved_in_features
         if extra < 0:
             raise ValueError(f"cannot narrow {saved_in_features} input columns to {self.cfg.in_features}")
         if extra == 0:

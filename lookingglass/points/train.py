@@ -214,7 +214,8 @@ def _check_source(run_dir: Path, normals: Path, views: int, rank: int) -> str:
     training.record_or_compare(run_dir / FEATURE_DIR / "source.json", source, rank,
                                "the cached point features were made with other normal weights, views "
                                "or feature columns",
-                               "use a new --out or the same --normals")
+                               "use a new --out or the same --normals (a cache from before the silhouette "
+                               "columns must be remade: delete RUN_DIR/features)")
     return digest
 
 
