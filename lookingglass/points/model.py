@@ -466,9 +466,9 @@ class PointNet(nn.Module):
     def widen_initial_state(self, state: dict[str, Tensor], saved_config: dict) -> dict[str, Tensor]:
         """`state` of a net like this one but made with `saved_config` (its weights.json "net")
         for in_features <= cfg.in_features input columns, with zero input weights added for the
-        new columns. The level-0 features enter
-        two layers: the first SA MLP, where they are the last inputs, and the last FP MLP, where
-        they are the skip link, before the normals when normal_skip is on."""
+        new columns. The level-0 features enter two layers: the first SA MLP, where they are the
+        last inputs, and the last FP MLP, where they are the skip link, before the normals when
+        normal_skip is on."""
         saved_in_features = int(saved_config.get("in_features", self.cfg.in_features))
         extra = self.cfg.in_features - saved_in_features
         if extra < 0:
