@@ -133,7 +133,8 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
                                                       config.surface, point_net)
                 rec["point_weights"] = str(point_weights) if point_weights is not None else None
                 write_points(out_dir / "points.ply", oriented.points, oriented.normals)
-                rec["offset_gain"] = mesh.metadata.get("offset_gain", 1.0)  # < 1: PNet's move opened tunnels
+                if "closing" in mesh.metadata:  # Poisson's surface had handles; the narrow ones were filled
+                    rec["tunnels_closed"] = mesh.metadata["closing"]
                 rec.update(mesh=mesh_summary(mesh), points=int(len(oriented.points)),
                            points_seen=float(oriented.seen.mean()), strategy=config.surface.strategy)
             best, best_stage = mesh, "surface"

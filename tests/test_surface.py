@@ -131,39 +131,100 @@ def test_genus_counts_handles_over_bodies():
     assert genus(trimesh.util.concatenate([sphere, far_torus])) == 1
 
 
-@pytest.mark.parametrize("handles_at, expected_gain", [
-    ({1.0: 3, 0.75: 2, 0.5: 1, 0.25: 1, 0.0: 1}, 0.5),  # the largest fraction that adds no handle
-    ({1.0: 2, 0.75: 2, 0.5: 2, 0.25: 3, 0.0: 1}, 0.0),  # none does: the hull's points
-    ({1.0: 1, 0.75: 4, 0.5: 4, 0.25: 4, 0.0: 1}, None),  # the full displacement adds none: kept as is
-])
-def test_topology_guard_keeps_the_largest_displacement_that_adds_no_handles(monkeypatch, handles_at, expected_gain):
-    """surface_from_normals' guard against PNet's spurious tunnels: a Poisson surface per tried
-    fraction of PNet's displacement (real meshes with that many handles stand in for Poisson's)."""
+# ---- close_narrow_tunnels ----------------------------------------------------------------------
+# A 1 x 1 x 0.6 box drilled along z by a cylinder, meshed finely (0.01) from its exact signed
+# distance. The closing below uses a grid step PITCH = 0.02 and a ball of 2 steps: a tunnel of
+# diameter 0.04 (narrower than the ball's 0.08) must be filled, one of 0.3 must stay open.
+PITCH = 0.02
+
+
+def drilled_box(tunnel_radius: float) -> trimesh.Trimesh:
+    from skimage.measure import marching_cubes
+
+    step = 0.01
+    axis = np.arange(-0.6, 0.6, step) + 0.0037  # no node exactly on a face: no degenerate triangles
+    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
+    q = np.abs(np.stack([x, y, z])) - np.array([0.5, 0.5, 0.3])[:, None, None, None]
+    box = np.linalg.norm(np.maximum(q, 0), axis=0) + np.minimum(q.max(axis=0), 0)
+    field = np.maximum(box, tunnel_radius - np.hypot(x, y))  # solid minus the cylinder
+    vertices, faces, _, _ = marching_cubes(field, 0.0, spacing=(step,) * 3)
+    mesh = trimesh.Trimesh(vertices + axis[0], faces)
+    mesh.fix_normals()
+    return mesh
+
+
+@pytest.mark.parametrize("tunnel_radius, genus_after", [(0.02, 0), (0.15, 1)])
+def test_closing_fills_narrow_tunnels_and_keeps_wide_ones(tunnel_radius, genus_after):
+    from lookingglass.points.stage import genus
+    from lookingglass.surface import close_narrow_tunnels
+
+    drilled = drilled_box(tunnel_radius)
+    assert drilled.is_watertight and genus(drilled) == 1
+    closed = close_narrow_tunnels(drilled, PITCH, radius=2)
+    assert closed.is_watertight and closed.is_winding_consistent and closed.volume > 0
+    assert genus(closed) == genus_after
+    # Where nothing was filled the surface stays put: every vertex of the result lies on the
+    # drilled box to a fraction of the grid step (the filled tunnel's plug lies inside the tunnel,
+    # within its radius of the wall).
+    distance = np.abs(trimesh.proximity.signed_distance(drilled, closed.vertices))
+    plug = np.hypot(closed.vertices[:, 0], closed.vertices[:, 1]) < tunnel_radius
+    assert np.median(distance[~plug]) < 0.05 * PITCH and distance[~plug].max() < 0.5 * PITCH
+    if genus_after == 0:
+        assert plug.any() and distance[plug].max() <= tunnel_radius + PITCH
+        # the whole tunnel is filled (0.6 long): the volume is the undrilled box's, re-meshed alike
+        # (marching cubes shaves the box's edges by about a grid step's triangle, the same in both),
+        # but for the plug's two ends, each of which may sink by up to a step over the mouth
+        solid = close_narrow_tunnels(drilled_box(0.0), PITCH, radius=2)
+        tunnel = np.pi * tunnel_radius ** 2 * 0.6
+        mouths = 2 * np.pi * (tunnel_radius + PITCH) ** 2 * PITCH
+        assert mouths < 0.3 * tunnel and abs(closed.volume - solid.volume) < mouths
+    else:
+        assert closed.metadata["closing"]["cells_added"] == 0
+
+
+def test_closing_keeps_a_sphere_to_a_fraction_of_the_grid_step():
+    """The grid holds distances to tangent planes of dense samples, not occupancy: the re-meshed
+    sphere's radius error is a small fraction of the step (occupancy would give ~ a quarter step)."""
+    from lookingglass.surface import close_narrow_tunnels
+
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.5)
+    closed = close_narrow_tunnels(sphere, PITCH, radius=2)
+    error = np.abs(np.linalg.norm(closed.vertices, axis=1) - 0.5)
+    assert error.mean() < 0.02 * PITCH and error.max() < 0.1 * PITCH
+    assert closed.metadata["closing"]["cells_added"] == 0
+
+
+@pytest.mark.parametrize("tunnel_radius, closed", [(0.01, True), (0.15, False), (None, False)])
+def test_surface_stage_fills_poissons_narrow_tunnels(monkeypatch, tunnel_radius, closed):
+    """surface_from_normals closes a Poisson surface's tunnels narrower than the closing ball
+    (SurfaceConfig.close_radius Poisson voxels, 0.0086 each at depth 8: 0.034 wide at 2), keeps a
+    wide one, and hands a genus-0 surface through untouched (a drilled box stands in for Poisson's
+    surface; None: the box undrilled)."""
     from lookingglass.points import stage
 
-    base = np.zeros((4, 3), np.float32)
-    offsets = np.full((4, 3), 0.1, np.float32)
-    full = stage.OrientedPoints(base + offsets, np.zeros((4, 3), np.float32), np.ones(4, bool), offsets)
-    torus = trimesh.creation.torus(major_radius=1.0, minor_radius=0.3)
-
-    def poisson_with_handles(oriented, config, hull):
-        gain = round(float(oriented.offsets[0, 0]) / 0.1, 2)
-        tori = [torus.copy().apply_translation([5.0 * k, 0, 0]) for k in range(handles_at[gain])]
-        mesh = trimesh.util.concatenate(tori) if tori else trimesh.creation.icosphere()
-        mesh.metadata["gain_used"] = gain
-        return mesh
+    points = np.zeros((4, 3), np.float32)
+    oriented = stage.OrientedPoints(points, points, np.ones(4, bool), points)
+    poisson = drilled_box(0.0 if tunnel_radius is None else tunnel_radius)
 
     class Unmoved:  # the cameras only need transforming into the hull's frame
         def transformed(self, center, scale):
             return self
 
-    monkeypatch.setattr(stage, "map_normals_to_hull", lambda *args, **kwargs: full)
-    monkeypatch.setattr(stage, "_poisson", poisson_with_handles)
-    mesh, oriented = stage.surface_from_normals(trimesh.creation.icosphere(), np.zeros(3), 1.0, Unmoved(), None, None,
-                                                None, None, stage.SurfaceConfig())
-    assert mesh.metadata.get("offset_gain") == expected_gain
-    used = 1.0 if expected_gain is None else expected_gain
-    assert mesh.metadata["gain_used"] == used
-    np.testing.assert_allclose(oriented.points, base + used * offsets, atol=1e-7)
-    with pytest.raises(ValueError, match="guard_gains"):
-        stage.SurfaceConfig(guard_gains=(1.0,))
+    monkeypatch.setattr(stage, "map_normals_to_hull", lambda *args, **kwargs: oriented)
+    monkeypatch.setattr(stage, "_poisson", lambda *args: poisson.copy())
+    center, scale = np.array([1.0, 2.0, 3.0]), 2.0
+    mesh, _ = stage.surface_from_normals(trimesh.creation.icosphere(), center, scale, Unmoved(), None, None,
+                                         None, None, stage.SurfaceConfig())
+    assert stage.genus(mesh) == (0 if closed or tunnel_radius is None else 1)
+    assert ("closing" in mesh.metadata) == (tunnel_radius is not None)
+    if tunnel_radius is None:  # untouched, moved back into the capture's frame
+        np.testing.assert_allclose(mesh.vertices, poisson.vertices * scale + center)
+    else:
+        assert mesh.metadata["closing"]["genus_before"] == 1
+        assert mesh.metadata["closing"]["genus_after"] == stage.genus(mesh)
+        assert mesh.metadata["closing"]["applied"] == closed
+        if not closed:  # the kept surface is Poisson's, moved back into the capture's frame
+            np.testing.assert_allclose(mesh.vertices, poisson.vertices * scale + center)
+        np.testing.assert_allclose(mesh.bounds, poisson.bounds * scale + center, atol=0.01 * scale)
+    with pytest.raises(ValueError, match="close_radius"):
+        stage.SurfaceConfig(close_radius=-1)

@@ -19,7 +19,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from ..physics.camera import Cameras
-from ..surface import poisson_surface
+from ..surface import close_narrow_tunnels, poisson_surface
 from .features import STRATEGIES, map_features, sample_hull_points
 from .model import PointNet
 
@@ -31,8 +31,9 @@ class SurfaceConfig:
     unit sphere's box, about the hull's 128^3 voxel); point_weight, samples_per_node: screened
     Poisson's; smoothing_neighbours: PNet's offsets and normals are averaged over this many
     nearest points (0 or 1: not at all), see `smooth_over_neighbours`; seed: point sampling;
-    point_weights: PNet weights ("" = the shipped ones, if any); guard_gains: the fractions of
-    PNet's displacement tried in turn when the full one adds handles (`surface_from_normals`).
+    point_weights: PNet weights ("" = the shipped ones, if any); close_radius: tunnels narrower than
+    about twice this many Poisson voxels are filled in a surface with handles (0: never; see
+    `surface_from_normals`).
 
     Why 40 000 points: where two parts of the hull face each other across a slit narrower than
     the point spacing (a handle close to the body), Poisson fuses them and the slit's walls vanish.
@@ -53,7 +54,7 @@ class SurfaceConfig:
     point_weight: float = 4.0
     samples_per_node: float = 1.5
     smoothing_neighbours: int = 32
-    guard_gains: tuple[float, ...] = (0.75, 0.5, 0.25)
+    close_radius: int = 2
     seed: int = 0
     point_weights: str = ""
 
@@ -62,8 +63,8 @@ class SurfaceConfig:
             raise ValueError(f"strategy must be one of {STRATEGIES}, got {self.strategy!r}")
         if self.points < 1:
             raise ValueError(f"points must be positive, got {self.points}")
-        if not all(0.0 < g < 1.0 for g in self.guard_gains):
-            raise ValueError(f"guard_gains must lie strictly between 0 and 1, got {self.guard_gains}")
+        if self.close_radius < 0:
+            raise ValueError(f"close_radius must be 0 or more, got {self.close_radius}")
 
 
 @dataclass
@@ -75,12 +76,6 @@ class OrientedPoints:
     normals: np.ndarray
     seen: np.ndarray
     offsets: np.ndarray | None = None
-
-    def with_offset_gain(self, gain: float) -> OrientedPoints:
-        """The same points with PNet's displacement scaled by `gain` (0: the hull's points)."""
-        moved = self.points + (gain - 1.0) * self.offsets
-        return OrientedPoints(moved.astype(np.float32), self.normals, self.seen,
-                              (gain * self.offsets).astype(np.float32))
 
 
 def map_normals_to_hull(hull_mesh: trimesh.Trimesh, cameras: Cameras, n1: torch.Tensor, error: torch.Tensor,
@@ -133,6 +128,12 @@ def genus(mesh: trimesh.Trimesh) -> int:
     return int(round(mesh.body_count - mesh.euler_number / 2))
 
 
+def poisson_voxel(depth: int) -> float:
+    """Screened Poisson's voxel in the hull-normalized frame: MeshLab's octree spans 1.1 x the
+    points' box, at most 2 wide there, in 2^depth cells."""
+    return 1.1 * 2.0 / 2 ** int(depth)
+
+
 def _poisson(oriented: OrientedPoints, config: SurfaceConfig, hull: trimesh.Trimesh) -> trimesh.Trimesh:
     return poisson_surface(oriented.points, oriented.normals, depth=config.depth, hull=hull,
                            samples_per_node=config.samples_per_node, point_weight=config.point_weight)
@@ -148,27 +149,22 @@ def surface_from_normals(hull_mesh: trimesh.Trimesh, center: np.ndarray, scale: 
     unit_hull.vertices = (np.asarray(hull_mesh.vertices) - center) / scale
     unit_cams = cameras.transformed(torch.as_tensor(center), scale)
     full = map_normals_to_hull(unit_hull, unit_cams, n1, error, tir, mask, config, point_net)
-    oriented, mesh = full, _poisson(full, config, unit_hull)
-    if full.offsets is not None and genus(mesh) > 0:
-        # PNet's displacement can push facing sheets through each other and open tunnels that no
-        # silhouette showed. The reference is the surface through the unmoved hull points (not the
-        # hull itself: at low resolution carving leaves pinholes that Poisson closes); a surface
-        # with more handles than it is retried with the displacement scaled by each of
-        # `guard_gains` in turn, then dropped. Quarter steps, not only a half: at 5 views, where the
-        # guard acts most, a quarter of the displacement still took CD 29 -> 21 (hull 30) on a scene
-        # whose half displacement added handles. (A genus-0 surface has no handles to add, so most
-        # shapes skip the reference's Poisson.)
-        unmoved = full.with_offset_gain(0.0)
-        reference = _poisson(unmoved, config, unit_hull)
-        if genus(mesh) > genus(reference):
-            gain, oriented, mesh = 0.0, unmoved, reference
-            for tried in config.guard_gains:
-                scaled = full.with_offset_gain(tried)
-                candidate = _poisson(scaled, config, unit_hull)
-                if genus(candidate) <= genus(reference):
-                    gain, oriented, mesh = tried, scaled, candidate
-                    break
-            mesh.metadata["offset_gain"] = gain
+    mesh = _poisson(full, config, unit_hull)
+    handles = genus(mesh)
+    if handles > 0 and config.close_radius > 0:
+        # PNet's displacement can push facing sheets of points through each other, and screened
+        # Poisson then opens tunnels narrower than the point spacing that no silhouette showed (at 5
+        # views, genus 34 on a genus-2 shape); carving pinholes do the same to the hull's own points.
+        # Chamfer distance hardly sees them, topology does. A morphological closing of the solid
+        # fills every tunnel narrower than the ball and leaves the rest of the surface in place.
+        # (A genus-0 surface has no tunnel to fill, so most shapes skip it.)
+        # Kept only if it removes handles: closing can also bridge a groove into a new handle, and
+        # where the genus stays the same it would only fill crevices.
+        closed = close_narrow_tunnels(mesh, poisson_voxel(config.depth), config.close_radius, seed=config.seed)
+        after = genus(closed)
+        if after < handles:
+            mesh = closed
+        mesh.metadata["closing"] = dict(closed.metadata["closing"], genus_before=handles,
+                                        genus_after=min(after, handles), applied=after < handles)
     mesh.vertices = np.asarray(mesh.vertices) * scale + center
-    return mesh, OrientedPoints((oriented.points * scale + center).astype(np.float32), oriented.normals,
-                                oriented.seen)
+    return mesh, OrientedPoints((full.points * scale + center).astype(np.float32), full.normals, full.seen)
