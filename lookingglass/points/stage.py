@@ -46,7 +46,13 @@ class SurfaceConfig:
     but fuse slits (test scene 33: CD 24 -> 41 at weight 2, 69 at 1). Neighbours 8/16/32/64 gave the
     same CD within 0.3% on that split and CDN-mean 15.3/14.9/14.6/14.4 deg; 64 starts to average
     across slits (scene 33: CD 24.5 at 32, 25.3 at 64). 32 on the 60-scene test split with the
-    shipped PNet, against 16: CD 11.07 vs 11.08, CDN-mean 15.77 vs 16.08, Metro 46.8 vs 47.1."""
+    shipped PNet, against 16: CD 11.07 vs 11.08, CDN-mean 15.77 vs 16.08, Metro 46.8 vs 47.1.
+
+    Why close_radius 2 (balls of 2 voxels: tunnels under ~0.034 wide in the hull's frame): on the
+    5-view test split (first 46 scenes, the shipped PNet, every surface closed) radii 2 / 3 / 4 gave
+    CD 18.48 / 18.97 / 19.31 against 18.31 unclosed, and excess handles over the ground truth 59 /
+    11 / 4 against 112; from 3 on, real handles narrowed by PNet's inward move close too (scene
+    25, genus 2: CD 17.6 -> 26.5 at 3, 39.1 at 4)."""
 
     points: int = 40000
     strategy: str = "RE"
