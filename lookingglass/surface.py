@@ -221,6 +221,9 @@ def signed_distance_grid(mesh: trimesh.Trimesh, pitch: float, margin: int, sampl
     inside: the objects are solids without cavities)."""
     lo = mesh.bounds[0] - margin * pitch  # margin: the closing's dilation must not touch the border
     shape = np.ceil((mesh.bounds[1] + margin * pitch - lo) / pitch).astype(int) + 1
+    # at least ~8 samples a cell's area, so that every cell the surface crosses holds one and the
+    # band separates inside from outside
+    samples = max(int(samples), int(8 * mesh.area / pitch ** 2))
     points, face_index = trimesh.sample.sample_surface(mesh, samples, seed=seed)
     normals = mesh.face_normals[face_index]
     # band: grid nodes of the cells that hold a sample, and their neighbours; only these get a distance
@@ -262,6 +265,8 @@ def close_narrow_tunnels(mesh: trimesh.Trimesh, pitch: float, radius: int, sampl
     vertices, faces, _, _ = marching_cubes(field, 0.0, spacing=(pitch, pitch, pitch))
     closed = _manifold_mesh(vertices + lo, faces)
     parts = closed.split(only_watertight=False)
+    if not parts:
+        raise LookingGlassError("closing the narrow tunnels left no surface")
     largest = max(part.area for part in parts)
     parts = [part for part in parts if part.area >= MIN_COMPONENT_AREA * largest]
     closed = parts[0] if len(parts) == 1 else trimesh.util.concatenate(parts)

@@ -228,3 +228,28 @@ def test_surface_stage_fills_poissons_narrow_tunnels(monkeypatch, tunnel_radius,
         np.testing.assert_allclose(mesh.bounds, poisson.bounds * scale + center, atol=0.01 * scale)
     with pytest.raises(ValueError, match="close_radius"):
         stage.SurfaceConfig(close_radius=-1)
+
+
+def test_surface_stage_keeps_poissons_surface_when_closing_fails(monkeypatch):
+    """The closing is a clean-up: if it fails, Poisson's surface stands and the report says why."""
+    from lookingglass.points import stage
+
+    points = np.zeros((4, 3), np.float32)
+    poisson = trimesh.creation.torus(major_radius=0.6, minor_radius=0.2)
+
+    class Unmoved:
+        def transformed(self, center, scale):
+            return self
+
+    def failing_closing(*args, **kwargs):
+        raise LookingGlassError("closing the narrow tunnels left no surface")
+
+    monkeypatch.setattr(stage, "map_normals_to_hull",
+                        lambda *args, **kwargs: stage.OrientedPoints(points, points, np.ones(4, bool)))
+    monkeypatch.setattr(stage, "_poisson", lambda *args: poisson.copy())
+    monkeypatch.setattr(stage, "close_narrow_tunnels", failing_closing)
+    mesh, _ = stage.surface_from_normals(trimesh.creation.icosphere(), np.zeros(3), 1.0, Unmoved(), None, None,
+                                         None, None, stage.SurfaceConfig())
+    np.testing.assert_allclose(mesh.vertices, poisson.vertices)
+    assert mesh.metadata["closing"] == {"genus_before": 1, "genus_after": 1, "applied": False,
+                                        "error": "closing the narrow tunnels left no surface"}

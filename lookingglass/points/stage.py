@@ -18,6 +18,7 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
+from ..errors import LookingGlassError
 from ..physics.camera import Cameras
 from ..surface import close_narrow_tunnels, poisson_surface
 from .features import STRATEGIES, map_features, sample_hull_points
@@ -166,11 +167,17 @@ def surface_from_normals(hull_mesh: trimesh.Trimesh, center: np.ndarray, scale: 
         # (A genus-0 surface has no tunnel to fill, so most shapes skip it.)
         # Kept only if it removes handles: closing can also bridge a groove into a new handle, and
         # where the genus stays the same it would only fill crevices.
-        closed = close_narrow_tunnels(mesh, poisson_voxel(config.depth), config.close_radius, seed=config.seed)
-        after = genus(closed)
-        if after < handles:
-            mesh = closed
-        mesh.metadata["closing"] = dict(closed.metadata["closing"], genus_before=handles,
-                                        genus_after=min(after, handles), applied=after < handles)
+        try:
+            closed = close_narrow_tunnels(mesh, poisson_voxel(config.depth), config.close_radius,
+                                          seed=config.seed)
+        except LookingGlassError as exc:  # a clean-up step: Poisson's surface stands, and says why
+            mesh.metadata["closing"] = {"genus_before": handles, "genus_after": handles, "applied": False,
+                                        "error": str(exc)}
+        else:
+            after = genus(closed)
+            if after < handles:
+                mesh = closed
+            mesh.metadata["closing"] = dict(closed.metadata["closing"], genus_before=handles,
+                                            genus_after=min(after, handles), applied=after < handles)
     mesh.vertices = np.asarray(mesh.vertices) * scale + center
     return mesh, OrientedPoints((full.points * scale + center).astype(np.float32), full.normals, full.seen)
