@@ -208,7 +208,7 @@ def poisson_surface(points, normals, depth: int = 8, hull: trimesh.Trimesh | Non
 
 def _ball(radius: int) -> np.ndarray:
     g = np.mgrid[-radius:radius + 1, -radius:radius + 1, -radius:radius + 1]
-    return (g ** 2).sum(axis=0) <= radius * radius + 0.5  # +0.5: the axis-neighbours of the rim count
+    return (g ** 2).sum(axis=0) <= radius * radius  # the grid nodes within `radius` steps of the centre
 
 
 def signed_distance_grid(mesh: trimesh.Trimesh, pitch: float, margin: int, samples: int = 1_000_000,

@@ -205,6 +205,7 @@ def test_surface_stage_fills_poissons_narrow_tunnels(monkeypatch, tunnel_radius,
     points = np.zeros((4, 3), np.float32)
     oriented = stage.OrientedPoints(points, points, np.ones(4, bool), points)
     poisson = drilled_box(0.0 if tunnel_radius is None else tunnel_radius)
+    poisson.metadata["poisson"] = {"depth": 8}  # Poisson's own report, kept on the closed surface too
 
     class Unmoved:  # the cameras only need transforming into the hull's frame
         def transformed(self, center, scale):
@@ -217,6 +218,7 @@ def test_surface_stage_fills_poissons_narrow_tunnels(monkeypatch, tunnel_radius,
                                          None, None, stage.SurfaceConfig())
     assert stage.genus(mesh) == (0 if closed or tunnel_radius is None else 1)
     assert ("closing" in mesh.metadata) == (tunnel_radius is not None)
+    assert mesh.metadata["poisson"] == {"depth": 8}
     if tunnel_radius is None:  # untouched, moved back into the capture's frame
         np.testing.assert_allclose(mesh.vertices, poisson.vertices * scale + center)
     else:

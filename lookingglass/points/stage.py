@@ -176,6 +176,7 @@ def surface_from_normals(hull_mesh: trimesh.Trimesh, center: np.ndarray, scale: 
         else:
             after = genus(closed)
             if after < handles:
+                closed.metadata = {**mesh.metadata, **closed.metadata}  # Poisson's report stays
                 mesh = closed
             mesh.metadata["closing"] = dict(closed.metadata["closing"], genus_before=handles,
                                             genus_after=min(after, handles), applied=after < handles)
