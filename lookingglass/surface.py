@@ -98,6 +98,14 @@ def _manifold_mesh(vertices: np.ndarray, faces: np.ndarray) -> trimesh.Trimesh:
     return _merged_and_repaired(ms)
 
 
+def _without_crumbs(parts: list[trimesh.Trimesh]) -> trimesh.Trimesh:
+    """The components of `parts` (non-empty) whose area is at least MIN_COMPONENT_AREA of the
+    largest one's, as one mesh: marching cubes leaves crumbs, real pieces are far larger."""
+    largest = max(part.area for part in parts)
+    kept = [part for part in parts if part.area >= MIN_COMPONENT_AREA * largest]
+    return kept[0] if len(kept) == 1 else trimesh.util.concatenate(kept)
+
+
 def _orient_and_check(mesh: trimesh.Trimesh, what: str, hint: str = "") -> None:
     """Consistent outward winding in place (each body flipped if its volume is negative); raises
     LookingGlassError when `mesh` is open, non-manifold or encloses no volume."""
@@ -181,11 +189,8 @@ def poisson_surface(points, normals, depth: int = 8, hull: trimesh.Trimesh | Non
         raise LookingGlassError("Poisson surface reconstruction produced no surface near the input points "
                                 f"(all {len(parts)} components farther than {trim_distance:.4g})")
     # Every near component is kept, not only the largest: where Poisson cuts a thin part of the
-    # object (a bar, a handle) the pieces are real surface. Crumbs below MIN_COMPONENT_AREA of the
-    # largest are dropped.
-    largest = max(part.area for part in near)
-    near = [part for part in near if part.area >= MIN_COMPONENT_AREA * largest]
-    mesh = near[0] if len(near) == 1 else trimesh.util.concatenate(near)
+    # object (a bar, a handle) the pieces are real surface.
+    mesh = _without_crumbs(near)
 
     # ---- report (not trim) faces far from every point: trimming would open holes ---------------
     far_faces = int((tree.query(mesh.triangles_center, k=1)[0] > trim_distance).sum())
@@ -219,7 +224,7 @@ def signed_distance_grid(mesh: trimesh.Trimesh, pitch: float, margin: int, sampl
     is the distance to the tangent plane of the nearest sample, exact to well under a step; away
     from it, +-2 steps by whether the near-surface band encloses the node (a cavity counts as
     inside: the objects are solids without cavities)."""
-    lo = mesh.bounds[0] - margin * pitch  # margin: the closing's dilation must not touch the border
+    lo = mesh.bounds[0] - margin * pitch
     shape = np.ceil((mesh.bounds[1] + margin * pitch - lo) / pitch).astype(int) + 1
     # at least ~8 samples a cell's area, so that every cell the surface crosses holds one and the
     # band separates inside from outside
@@ -257,6 +262,7 @@ def close_narrow_tunnels(mesh: trimesh.Trimesh, pitch: float, radius: int, sampl
     survives. Closing can also bridge a groove over a wider channel and so add a handle: callers
     compare the genus before and after. The result is watertight and outward-oriented;
     metadata["closing"] says how much solid the closing added (in grid cells)."""
+    # a margin wider than the ball: the closing's dilation must not reach the grid's border
     field, lo = signed_distance_grid(mesh, pitch, margin=int(radius) + 3, samples=samples, seed=seed)
     inside = field < 0
     # Closing can seal a cavity under a narrow opening; the objects have none, so voids are filled.
@@ -267,9 +273,7 @@ def close_narrow_tunnels(mesh: trimesh.Trimesh, pitch: float, radius: int, sampl
     parts = closed.split(only_watertight=False)
     if not parts:
         raise LookingGlassError("closing the narrow tunnels left no surface")
-    largest = max(part.area for part in parts)
-    parts = [part for part in parts if part.area >= MIN_COMPONENT_AREA * largest]
-    closed = parts[0] if len(parts) == 1 else trimesh.util.concatenate(parts)
+    closed = _without_crumbs(parts)
     _orient_and_check(closed, "the surface with its narrow tunnels closed")
     closed.metadata["closing"] = {"pitch": float(pitch), "radius": int(radius), "cells_added": int(added.sum())}
     return closed

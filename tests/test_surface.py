@@ -194,6 +194,25 @@ def test_closing_keeps_a_sphere_to_a_fraction_of_the_grid_step():
     assert closed.metadata["closing"]["cells_added"] == 0
 
 
+def surface_stage_on(monkeypatch, poisson: trimesh.Trimesh, center: np.ndarray, scale: float) -> trimesh.Trimesh:
+    """The mesh surface_from_normals makes when screened Poisson returns `poisson` (in the hull's
+    frame): feature mapping and Poisson are stubbed out, the rest of the stage runs."""
+    from lookingglass.points import stage
+
+    points = np.zeros((4, 3), np.float32)
+
+    class Unmoved:  # the cameras only need transforming into the hull's frame
+        def transformed(self, center, scale):
+            return self
+
+    monkeypatch.setattr(stage, "map_normals_to_hull",
+                        lambda *args, **kwargs: stage.OrientedPoints(points, points, np.ones(4, bool), points))
+    monkeypatch.setattr(stage, "_poisson", lambda *args: poisson.copy())
+    mesh, _ = stage.surface_from_normals(trimesh.creation.icosphere(), center, scale, Unmoved(), None, None,
+                                         None, None, stage.SurfaceConfig())
+    return mesh
+
+
 @pytest.mark.parametrize("tunnel_radius, closed", [(0.01, True), (0.15, False), (None, False)])
 def test_surface_stage_fills_poissons_narrow_tunnels(monkeypatch, tunnel_radius, closed):
     """surface_from_normals closes a Poisson surface's tunnels narrower than the closing ball
@@ -202,20 +221,10 @@ def test_surface_stage_fills_poissons_narrow_tunnels(monkeypatch, tunnel_radius,
     surface; None: the box undrilled)."""
     from lookingglass.points import stage
 
-    points = np.zeros((4, 3), np.float32)
-    oriented = stage.OrientedPoints(points, points, np.ones(4, bool), points)
     poisson = drilled_box(0.0 if tunnel_radius is None else tunnel_radius)
     poisson.metadata["poisson"] = {"depth": 8}  # Poisson's own report, kept on the closed surface too
-
-    class Unmoved:  # the cameras only need transforming into the hull's frame
-        def transformed(self, center, scale):
-            return self
-
-    monkeypatch.setattr(stage, "map_normals_to_hull", lambda *args, **kwargs: oriented)
-    monkeypatch.setattr(stage, "_poisson", lambda *args: poisson.copy())
     center, scale = np.array([1.0, 2.0, 3.0]), 2.0
-    mesh, _ = stage.surface_from_normals(trimesh.creation.icosphere(), center, scale, Unmoved(), None, None,
-                                         None, None, stage.SurfaceConfig())
+    mesh = surface_stage_on(monkeypatch, poisson, center, scale)
     assert stage.genus(mesh) == (0 if closed or tunnel_radius is None else 1)
     assert ("closing" in mesh.metadata) == (tunnel_radius is not None)
     assert mesh.metadata["poisson"] == {"depth": 8}
@@ -236,22 +245,13 @@ def test_surface_stage_keeps_poissons_surface_when_closing_fails(monkeypatch):
     """The closing is a clean-up: if it fails, Poisson's surface stands and the report says why."""
     from lookingglass.points import stage
 
-    points = np.zeros((4, 3), np.float32)
     poisson = trimesh.creation.torus(major_radius=0.6, minor_radius=0.2)
-
-    class Unmoved:
-        def transformed(self, center, scale):
-            return self
 
     def failing_closing(*args, **kwargs):
         raise LookingGlassError("closing the narrow tunnels left no surface")
 
-    monkeypatch.setattr(stage, "map_normals_to_hull",
-                        lambda *args, **kwargs: stage.OrientedPoints(points, points, np.ones(4, bool)))
-    monkeypatch.setattr(stage, "_poisson", lambda *args: poisson.copy())
     monkeypatch.setattr(stage, "close_narrow_tunnels", failing_closing)
-    mesh, _ = stage.surface_from_normals(trimesh.creation.icosphere(), np.zeros(3), 1.0, Unmoved(), None, None,
-                                         None, None, stage.SurfaceConfig())
+    mesh = surface_stage_on(monkeypatch, poisson, np.zeros(3), 1.0)
     np.testing.assert_allclose(mesh.vertices, poisson.vertices)
     assert mesh.metadata["closing"] == {"genus_before": 1, "genus_after": 1, "applied": False,
                                         "error": "closing the narrow tunnels left no surface"}
