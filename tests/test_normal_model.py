@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from lookingglass.normals.model import (NormalNet, build_cost_volume, cpu_config, network_inputs, paper_config,
-                                        sample_cone)
+                                        sample_cone, unit_channels)
 from lookingglass.physics.camera import Cameras
 from lookingglass.physics.environment import EnvironmentMap
 
@@ -112,3 +112,18 @@ def test_residual_net_starts_at_the_hull_normals():
     assert net.decoder[-1].weight.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="hull normals"):
         net.decode(net.encode(x, torch.zeros(2, 16, 8, 48, 64)))
+
+
+def test_unit_channels_is_normalize_with_its_gradient():
+    """The decoder's fast channel normalization must be F.normalize(dim=1) in value and gradient,
+    including a zero vector (gradient zero there, not NaN)."""
+    x = torch.randn(2, 3, 5, 7, dtype=torch.float64)
+    x[0, :, 0, 0] = 0.0
+    x.requires_grad_(True)
+    ours, ref = unit_channels(x), torch.nn.functional.normalize(x, dim=1, eps=1e-6)
+    assert torch.allclose(ours, ref, atol=1e-12)
+    weights = torch.randn_like(ours)
+    (g_ours,) = torch.autograd.grad((ours * weights).sum(), x)
+    (g_ref,) = torch.autograd.grad((ref * weights).sum(), x)
+    assert torch.isfinite(g_ours).all()
+    assert torch.allclose(g_ours, g_ref, atol=1e-8)

@@ -26,8 +26,8 @@ from .train import load_weights, scene_tensors
 
 def _angles(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> np.ndarray:
     """Angles in degrees between (V,3,H,W) normal maps over mask (V,H,W)."""
-    a = torch.nn.functional.normalize(a, dim=1).permute(0, 2, 3, 1)[mask]
-    b = torch.nn.functional.normalize(b, dim=1).permute(0, 2, 3, 1)[mask]
+    a = torch.nn.functional.normalize(a.permute(0, 2, 3, 1)[mask], dim=-1)
+    b = torch.nn.functional.normalize(b.permute(0, 2, 3, 1)[mask], dim=-1)
     return torch.rad2deg(torch.atan2(torch.linalg.cross(a, b, dim=-1).norm(dim=-1), (a * b).sum(-1))).cpu().numpy()
 
 

@@ -141,11 +141,18 @@ class NormalNet(nn.Module):
             if inputs is None:
                 raise ValueError("a residual network decodes relative to the hull normals; pass the inputs")
             n1, n2 = n1 + inputs[:, HULL_N1_CHANNELS], n2 + inputs[:, HULL_N2_CHANNELS]
-        return (torch.nn.functional.normalize(n1, dim=1, eps=1e-6),
-                torch.nn.functional.normalize(n2, dim=1, eps=1e-6))
+        return unit_channels(n1), unit_channels(n2)
 
     def forward(self, inputs: Tensor, cost_volume: Tensor | None = None) -> tuple[Tensor, Tensor]:
         return self.decode(self.encode(inputs, cost_volume), inputs)
+
+
+def unit_channels(x: Tensor, eps: float = 1e-6) -> Tensor:
+    """x / max(|x|, eps) over dim 1 of (B, C, H, W): F.normalize(x, dim=1), whose norm over the
+    channel dim takes ~20 ms for 10 views at 128x96 on this CPU (torch 2.13) against < 1 ms for
+    this sum of squares; it runs twice per latent-optimization step. The clamp comes before the
+    root so a zero vector gets a zero gradient, as with F.normalize."""
+    return x * x.square().sum(1, keepdim=True).clamp_min(eps * eps).rsqrt()
 
 
 # ---- inputs -------------------------------------------------------------------------------------
