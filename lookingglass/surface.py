@@ -222,8 +222,10 @@ def signed_distance_grid(mesh: trimesh.Trimesh, pitch: float, margin: int, sampl
     bounds plus `margin` steps, clamped to +-2 steps, and the grid's first node. Near the surface
     (the nodes of the cells that hold one of `samples` surface samples, and their neighbours) it
     is the distance to the tangent plane of the nearest sample, exact to well under a step; away
-    from it, +-2 steps by whether the near-surface band encloses the node (a cavity counts as
-    inside: the objects are solids without cavities)."""
+    from it, +-2 steps by the side of the surface that the walls around the node face: each
+    region the band cuts off takes the majority sign of the band nodes next to it. (Not "enclosed
+    by the band means inside": a pocket of outside space behind a neck narrower than the band, as
+    in a slit handle, would be filled.)"""
     lo = mesh.bounds[0] - margin * pitch
     shape = np.ceil((mesh.bounds[1] + margin * pitch - lo) / pitch).astype(int) + 1
     # at least ~8 samples a cell's area, so that every cell the surface crosses holds one and the
@@ -242,9 +244,20 @@ def signed_distance_grid(mesh: trimesh.Trimesh, pitch: float, margin: int, sampl
     x = lo + nodes * pitch
     _, nearest = cKDTree(points).query(x)
     signed = np.einsum("ij,ij->i", x - points[nearest], normals[nearest])
-    enclosed = ndimage.binary_fill_holes(band) & ~band
-    field = np.where(enclosed, -2.0 * pitch, 2.0 * pitch).astype(np.float32)
+    field = np.zeros(shape, np.float32)
     field[band] = np.clip(signed, -2.0 * pitch, 2.0 * pitch)
+    region, count = ndimage.label(~band)  # 0 on the band
+    votes = np.zeros(count + 1)
+    for axis in range(3):  # each region's 6-neighbours on the band vote with their sign
+        for a, b in ((slice(1, None), slice(None, -1)), (slice(None, -1), slice(1, None))):
+            src, dst = [slice(None)] * 3, [slice(None)] * 3
+            src[axis], dst[axis] = a, b
+            votes += np.bincount(region[tuple(src)].ravel(), weights=np.sign(field[tuple(dst)]).ravel(),
+                                 minlength=count + 1)
+    inside_region = votes < 0
+    inside_region[0] = False
+    free = ~band
+    field[free] = np.where(inside_region[region[free]], -2.0 * pitch, 2.0 * pitch)
     return field, lo
 
 
@@ -265,7 +278,8 @@ def close_narrow_tunnels(mesh: trimesh.Trimesh, pitch: float, radius: int, sampl
     # a margin wider than the ball: the closing's dilation must not reach the grid's border
     field, lo = signed_distance_grid(mesh, pitch, margin=int(radius) + 3, samples=samples, seed=seed)
     inside = field < 0
-    # Closing can seal a cavity under a narrow opening; the objects have none, so voids are filled.
+    # Closing can seal a pocket behind a narrow neck; it is filled too: on PNet's surfaces these
+    # are the space between sheets pushed through each other, which the tunnels lead into.
     added = ndimage.binary_fill_holes(ndimage.binary_closing(inside, structure=_ball(int(radius)))) & ~inside
     field[added] = -0.5 * pitch  # the plugs: inside, half a step from their boundary
     vertices, faces, _, _ = marching_cubes(field, 0.0, spacing=(pitch, pitch, pitch))

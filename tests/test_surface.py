@@ -194,6 +194,39 @@ def test_closing_keeps_a_sphere_to_a_fraction_of_the_grid_step():
     assert closed.metadata["closing"]["cells_added"] == 0
 
 
+def test_signed_distance_grid_keeps_a_pocket_behind_a_narrow_neck_outside():
+    """A chamber inside a box, open to the outside only by a slit narrower than the grid's
+    near-surface band: the band cuts the chamber off, but its walls face into it, so it stays
+    outside (the rule "cut off by the band means inside" would fill it, as it filled a slit
+    handle's hole on a test scene). Re-meshing without closing keeps the volume."""
+    from skimage.measure import marching_cubes
+
+    from lookingglass.surface import close_narrow_tunnels, signed_distance_grid
+
+    step = 0.01
+    axis = np.arange(-0.6, 0.6, step) + 0.0037
+    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
+    q = np.abs(np.stack([x, y, z])) - np.array([0.5, 0.5, 0.3])[:, None, None, None]
+    box = np.linalg.norm(np.maximum(q, 0), axis=0) + np.minimum(q.max(axis=0), 0)
+    chamber = 0.2 - np.sqrt(x ** 2 + y ** 2 + z ** 2)
+    slit = np.minimum(np.minimum(0.0125 - np.abs(x), 0.1 - np.abs(y)), z)  # 0.025 wide, chamber to top
+    vertices, faces, _, _ = marching_cubes(np.maximum(box, np.maximum(chamber, slit)), 0.0, spacing=(step,) * 3)
+    mesh = trimesh.Trimesh(vertices + axis[0], faces)
+    mesh.fix_normals()
+    assert mesh.is_watertight and mesh.volume > 0
+
+    field, lo = signed_distance_grid(mesh, PITCH, margin=3)
+    def at(point):
+        i = np.round((np.asarray(point) - lo) / PITCH).astype(int)
+        return field[tuple(i)]
+    assert at((0, 0, -0.1)) > 0  # in the chamber, below the slit, farther than the band from any wall
+    assert at((0.3, 0.3, 0.0)) < 0 and at((0.3, 0.3, 0.34)) > 0  # in the solid; above the box
+
+    remeshed = close_narrow_tunnels(mesh, PITCH, radius=0)
+    chamber_volume = 4 / 3 * np.pi * 0.2 ** 3
+    assert abs(remeshed.volume - mesh.volume) < 0.1 * chamber_volume
+
+
 def surface_stage_on(monkeypatch, poisson: trimesh.Trimesh, center: np.ndarray, scale: float) -> trimesh.Trimesh:
     """The mesh surface_from_normals makes when screened Poisson returns `poisson` (in the hull's
     frame): feature mapping and Poisson are stubbed out, the rest of the stage runs."""
