@@ -84,7 +84,9 @@ def test_eval_normals_prints_table_1_and_workers_match_one_process(two_scene_spl
         proc = run("eval-normals", "--data", two_scene_split, "--weights", f"wr+cv={shipped_weights(10)[0]}",
                    "--latent-iterations", 2, "--workers", workers, "--quiet")
         tables[workers] = table_rows(proc.stdout)
-    assert list(tables[2]) == list(tables[1]) == ["vh", "wr+cv", "wr+cv+op"]
+    assert list(tables[2]) == list(tables[1]) == ["vh", "wr+cv", "wr+cv+op", "gt"]
+    truth = tables[1].pop("gt")  # the ground truth: no angle error; renders closer than the hull
+    assert truth[:4] == [0.0] * 4 and 0 < truth[4] < tables[1]["vh"][4]
     for numbers in tables[1].values():  # N1 median/mean, N2 median/mean (degrees), render error
         assert len(numbers) == 5 and all(0 < v < 90 for v in numbers[:4]) and numbers[4] > 0
     for row, numbers in tables[1].items():

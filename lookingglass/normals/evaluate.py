@@ -1,5 +1,6 @@
 """The paper's Table 1 on a test split: N1/N2 angle errors and render error for the visual hull
-and each trained variant (basic, wr, wr+cv), plus wr+cv with latent optimization (wr+cv+op).
+and each trained variant (basic, wr, wr+cv), plus wr+cv with latent optimization (wr+cv+op), and
+the ground-truth normals' render error (row gt: what the rendering layer cannot reproduce).
 
 Statistics pool every pixel of every view of every scene: N1 over the object mask, N2 over the
 pixels whose true path has exactly two interfaces (the dataset's `valid`), render error over the
@@ -78,7 +79,7 @@ def evaluate_normals(dataset, weights: dict[str, Path], latent: LatentOptConfig 
     for scene_rows in reporter.track(per_scene, total=n, description="test scenes"):
         for name, errors in scene_rows.items():
             rows.setdefault(name, NormalErrors()).merge(errors)
-    order = ["vh", *weights, "wr+cv+op"]  # the table's row order, whatever order the scenes finished in
+    order = ["vh", *weights, "wr+cv+op", "gt"]  # the table's row order, whatever order the scenes finished in
     return {name: {**rows[name].summary(), "seconds_per_scene": rows[name].seconds / max(n, 1)}
             for name in order if name in rows}
 
@@ -114,6 +115,10 @@ class _NormalEvaluation:
             base = scene_tensors(sample, NormalNetConfig(use_error_map=False, use_cost_volume=False), 1.4723, device)
         vh1 = sample["vh_n1"].to(device).float() * base["mask"].unsqueeze(1)
         rows["vh"].add(vh1, sample["vh_n2"].to(device).float(), base)
+        # The ground truth's own render error: the floor the layer's two-bounce model leaves on
+        # pixels whose light takes more interfaces (angle errors 0 by construction).
+        rows["gt"] = NormalErrors()
+        rows["gt"].add(base["n1"], base["n2"], base)
         return rows
 
 
