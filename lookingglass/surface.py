@@ -247,15 +247,20 @@ def signed_distance_grid(mesh: trimesh.Trimesh, pitch: float, margin: int, sampl
     field = np.zeros(shape, np.float32)
     field[band] = np.clip(signed, -2.0 * pitch, 2.0 * pitch)
     region, count = ndimage.label(~band)  # 0 on the band
+    side = np.sign(field).astype(np.int8)  # +-1 on the band, 0 off it (not yet assigned)
     votes = np.zeros(count + 1)
-    for axis in range(3):  # each region's 6-neighbours on the band vote with their sign
+    for axis in range(3):  # each region's 6-neighbours on the band vote with their side
         for a, b in ((slice(1, None), slice(None, -1)), (slice(None, -1), slice(1, None))):
             src, dst = [slice(None)] * 3, [slice(None)] * 3
             src[axis], dst[axis] = a, b
-            votes += np.bincount(region[tuple(src)].ravel(), weights=np.sign(field[tuple(dst)]).ravel(),
-                                 minlength=count + 1)
+            r, v = region[tuple(src)], side[tuple(dst)]
+            pair = (r > 0) & (v != 0)
+            votes += np.bincount(r[pair], weights=v[pair], minlength=count + 1)
     inside_region = votes < 0
-    inside_region[0] = False
+    # what touches the grid's border is outside whatever the votes say (the grid has a margin)
+    border = np.concatenate([region[0].ravel(), region[-1].ravel(), region[:, 0].ravel(), region[:, -1].ravel(),
+                             region[:, :, 0].ravel(), region[:, :, -1].ravel()])
+    inside_region[border] = False
     free = ~band
     field[free] = np.where(inside_region[region[free]], -2.0 * pitch, 2.0 * pitch)
     return field, lo

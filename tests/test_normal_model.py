@@ -116,7 +116,7 @@ def test_residual_net_starts_at_the_hull_normals():
 
 def test_unit_channels_is_normalize_with_its_gradient():
     """The decoder's fast channel normalization must be F.normalize(dim=1) in value and gradient,
-    including a zero vector (gradient zero there, not NaN)."""
+    including a zero vector (a finite gradient there, upstream / eps, not NaN)."""
     x = torch.randn(2, 3, 5, 7, dtype=torch.float64)
     x[0, :, 0, 0] = 0.0
     x.requires_grad_(True)

@@ -138,7 +138,9 @@ def test_genus_counts_handles_over_bodies():
 PITCH = 0.02
 
 
-def drilled_box(tunnel_radius: float) -> trimesh.Trimesh:
+def carved_box(carve) -> trimesh.Trimesh:
+    """The box minus the solid where carve(x, y, z) < 0 (a signed distance, negative inside the
+    cut), meshed by marching cubes at 0.01 from the exact distance."""
     from skimage.measure import marching_cubes
 
     step = 0.01
@@ -146,11 +148,14 @@ def drilled_box(tunnel_radius: float) -> trimesh.Trimesh:
     x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
     q = np.abs(np.stack([x, y, z])) - np.array([0.5, 0.5, 0.3])[:, None, None, None]
     box = np.linalg.norm(np.maximum(q, 0), axis=0) + np.minimum(q.max(axis=0), 0)
-    field = np.maximum(box, tunnel_radius - np.hypot(x, y))  # solid minus the cylinder
-    vertices, faces, _, _ = marching_cubes(field, 0.0, spacing=(step,) * 3)
+    vertices, faces, _, _ = marching_cubes(np.maximum(box, -carve(x, y, z)), 0.0, spacing=(step,) * 3)
     mesh = trimesh.Trimesh(vertices + axis[0], faces)
     mesh.fix_normals()
     return mesh
+
+
+def drilled_box(tunnel_radius: float) -> trimesh.Trimesh:
+    return carved_box(lambda x, y, z: np.hypot(x, y) - tunnel_radius)  # minus a cylinder along z
 
 
 @pytest.mark.parametrize("tunnel_radius, genus_after", [(0.02, 0), (0.15, 1)])
@@ -198,24 +203,20 @@ def test_signed_distance_grid_keeps_a_pocket_behind_a_narrow_neck_outside():
     """A chamber inside a box, open to the outside only by a slit narrower than the grid's
     near-surface band: the band cuts the chamber off, but its walls face into it, so it stays
     outside (the rule "cut off by the band means inside" would fill it, as it filled a slit
-    handle's hole on a test scene). Re-meshing without closing keeps the volume."""
-    from skimage.measure import marching_cubes
-
+    handle's hole on a test scene). Re-meshing without closing (radius 0: the grid alone) keeps
+    the volume. (A closing by a ball wider than the slit seals it and fills the chamber, by design.)"""
     from lookingglass.surface import close_narrow_tunnels, signed_distance_grid
 
-    step = 0.01
-    axis = np.arange(-0.6, 0.6, step) + 0.0037
-    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
-    q = np.abs(np.stack([x, y, z])) - np.array([0.5, 0.5, 0.3])[:, None, None, None]
-    box = np.linalg.norm(np.maximum(q, 0), axis=0) + np.minimum(q.max(axis=0), 0)
-    chamber = 0.2 - np.sqrt(x ** 2 + y ** 2 + z ** 2)
-    slit = np.minimum(np.minimum(0.0125 - np.abs(x), 0.1 - np.abs(y)), z)  # 0.025 wide, chamber to top
-    vertices, faces, _, _ = marching_cubes(np.maximum(box, np.maximum(chamber, slit)), 0.0, spacing=(step,) * 3)
-    mesh = trimesh.Trimesh(vertices + axis[0], faces)
-    mesh.fix_normals()
+    def chamber_and_slit(x, y, z):
+        chamber = np.sqrt(x ** 2 + y ** 2 + z ** 2) - 0.2
+        slit = np.maximum(np.maximum(np.abs(x) - 0.0125, np.abs(y) - 0.1), -z)  # 0.025 wide, chamber to top
+        return np.minimum(chamber, slit)
+
+    mesh = carved_box(chamber_and_slit)
     assert mesh.is_watertight and mesh.volume > 0
 
     field, lo = signed_distance_grid(mesh, PITCH, margin=3)
+
     def at(point):
         i = np.round((np.asarray(point) - lo) / PITCH).astype(int)
         return field[tuple(i)]

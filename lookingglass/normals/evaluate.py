@@ -1,6 +1,7 @@
 """The paper's Table 1 on a test split: N1/N2 angle errors and render error for the visual hull
 and each trained variant (basic, wr, wr+cv), plus wr+cv with latent optimization (wr+cv+op), and
-the ground-truth normals' render error (row gt: what the rendering layer cannot reproduce).
+the ground-truth normals' render error (row gt, a reference: what the two-bounce rendering layer
+misses even with the true normals).
 
 Statistics pool every pixel of every view of every scene: N1 over the object mask, N2 over the
 pixels whose true path has exactly two interfaces (the dataset's `valid`), render error over the
@@ -115,8 +116,8 @@ class _NormalEvaluation:
             base = scene_tensors(sample, NormalNetConfig(use_error_map=False, use_cost_volume=False), 1.4723, device)
         vh1 = sample["vh_n1"].to(device).float() * base["mask"].unsqueeze(1)
         rows["vh"].add(vh1, sample["vh_n2"].to(device).float(), base)
-        # The ground truth's own render error: the floor the layer's two-bounce model leaves on
-        # pixels whose light takes more interfaces (angle errors 0 by construction).
+        # The ground truth's own render error, a reference: the two-bounce layer cannot render the
+        # pixels whose light takes more interfaces or none after the first (angle errors 0 here).
         rows["gt"] = NormalErrors()
         rows["gt"].add(base["n1"], base["n2"], base)
         return rows
