@@ -20,37 +20,48 @@ from lookingglass.normals.latent import LatentOptConfig, optimize_latent
 from lookingglass.normals.train import load_weights, scene_tensors
 
 
+def schedule(entry: str, lrs: list[float]) -> tuple[tuple[int, int], list[float]]:
+    """'10' -> ((10, 10), lrs); '30+0' -> ((30, 0), lrs); '25+15@0.05' -> ((25, 15), [0.05])."""
+    steps, _, rate = entry.partition("@")
+    n2, plus, both = steps.partition("+")
+    return (int(n2), int(both) if plus else int(n2)), ([float(rate)] if rate else lrs)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument("--data", default="data")
     parser.add_argument("--weights", required=True)
     parser.add_argument("--scenes", type=int, default=5)
-    parser.add_argument("--steps", default="0,10,25,50,100")
+    parser.add_argument("--steps", default="0,10,25,50,100",
+                        help="comma-separated schedules: K (K + K steps), N2+BOTH, or either with @RATE")
     parser.add_argument("--lrs", default=str(LatentOptConfig.lr), help="comma-separated Adam rates to sweep too")
+    parser.add_argument("--data-views", type=int, default=10)
     args = parser.parse_args()
     lrs = [float(x) for x in args.lrs.split(",")]
-    ks = [(int(k), lr) for k in args.steps.split(",") for lr in (lrs if int(k) else lrs[:1])]
-    ds = TransparentSceneDataset(args.data, "test", views=10)
+    ks = [(phases, lr) for entry in args.steps.split(",") for phases, entry_lrs in [schedule(entry, lrs)]
+          for lr in (entry_lrs if sum(phases) else entry_lrs[:1])]
+    ds = TransparentSceneDataset(args.data, "test", views=args.data_views)
     net = load_weights(args.weights)
     rows = {key: NormalErrors() for key in ks}
     for i in range(min(args.scenes, len(ds))):
         t = scene_tensors(ds[i], net.cfg, 1.4723)
         for k, lr in ks:
             start = time.perf_counter()
-            if k == 0:
+            if sum(k) == 0:
                 with torch.no_grad():
                     n1, n2 = net(t["inputs"], t["cost_volume"])
             else:
                 n1, n2, _ = optimize_latent(net, t["inputs"], t["cost_volume"], t["envmap"], t["image"], t["mask"],
-                                            t["cameras"], LatentOptConfig(k, k, lr=lr))
+                                            t["cameras"], LatentOptConfig(*k, lr=lr))
             rows[k, lr].add(n1.detach(), n2.detach(), t, time.perf_counter() - start)
         print(f"scene {i + 1}/{min(args.scenes, len(ds))}", flush=True)
-    print(f"\nLatent-optimization sweep: {args.weights}, first {args.scenes} test scenes of {args.data}, 10 views\n")
+    print(f"\nLatent-optimization sweep: {args.weights}, first {args.scenes} test scenes of {args.data}, "
+          f"{args.data_views} views\n")
     print("| steps (N2 + both) | Adam rate | N1 median (°) | N2 median (°) | render error (×1e-2) | seconds / scene |")
     print("|---|---|---|---|---|---|")
     for (k, lr), row in rows.items():
         s = row.summary()
-        print(f"| {k} + {k} | {lr if k else '-'} | {s['n1_median']:.2f} | {s['n2_median']:.2f} | {100 * s['render_error']:.3f} | "
+        print(f"| {k[0]} + {k[1]} | {lr if sum(k) else '-'} | {s['n1_median']:.2f} | {s['n2_median']:.2f} | {100 * s['render_error']:.3f} | "
               f"{row.seconds / max(1, min(args.scenes, len(ds))):.1f} |")
     return 0
 
