@@ -38,8 +38,10 @@ def main() -> int:
     parser.add_argument("--data-views", type=int, default=10)
     args = parser.parse_args()
     lrs = [float(x) for x in args.lrs.split(",")]
-    ks = [(phases, lr) for entry in args.steps.split(",") for phases, entry_lrs in [schedule(entry, lrs)]
-          for lr in (entry_lrs if sum(phases) else entry_lrs[:1])]
+    ks = []  # (steps of each phase, Adam rate); no rate sweep without steps
+    for entry in args.steps.split(","):
+        phases, entry_lrs = schedule(entry, lrs)
+        ks += [(phases, lr) for lr in (entry_lrs if sum(phases) else entry_lrs[:1])]
     ds = TransparentSceneDataset(args.data, "test", views=args.data_views)
     net = load_weights(args.weights)
     rows = {key: NormalErrors() for key in ks}

@@ -246,7 +246,8 @@ def signed_distance_grid(mesh: trimesh.Trimesh, pitch: float, margin: int, sampl
     signed = np.einsum("ij,ij->i", x - points[nearest], normals[nearest])
     field = np.zeros(shape, np.float32)
     field[band] = np.clip(signed, -2.0 * pitch, 2.0 * pitch)
-    region, count = ndimage.label(~band)  # 0 on the band
+    free = ~band
+    region, count = ndimage.label(free)  # 0 on the band
     side = np.sign(field).astype(np.int8)  # +-1 on the band, 0 off it (not yet assigned)
     votes = np.zeros(count + 1)
     for axis in range(3):  # each region's 6-neighbours on the band vote with their side
@@ -258,10 +259,8 @@ def signed_distance_grid(mesh: trimesh.Trimesh, pitch: float, margin: int, sampl
             votes += np.bincount(r[pair], weights=v[pair], minlength=count + 1)
     inside_region = votes < 0
     # what touches the grid's border is outside whatever the votes say (the grid has a margin)
-    border = np.concatenate([region[0].ravel(), region[-1].ravel(), region[:, 0].ravel(), region[:, -1].ravel(),
-                             region[:, :, 0].ravel(), region[:, :, -1].ravel()])
-    inside_region[border] = False
-    free = ~band
+    for axis in range(3):
+        inside_region[np.moveaxis(region, axis, 0)[[0, -1]].ravel()] = False
     field[free] = np.where(inside_region[region[free]], -2.0 * pitch, 2.0 * pitch)
     return field, lo
 

@@ -220,6 +220,7 @@ def test_signed_distance_grid_keeps_a_pocket_behind_a_narrow_neck_outside():
     def at(point):
         i = np.round((np.asarray(point) - lo) / PITCH).astype(int)
         return field[tuple(i)]
+
     assert at((0, 0, -0.1)) > 0  # in the chamber, below the slit, farther than the band from any wall
     assert at((0.3, 0.3, 0.0)) < 0 and at((0.3, 0.3, 0.34)) > 0  # in the solid; above the box
 
