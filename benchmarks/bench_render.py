@@ -40,6 +40,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 from lookingglass.capture.images import read_envmap  # noqa: E402
 from lookingglass.physics.camera import Cameras  # noqa: E402
 from lookingglass.physics.environment import EnvironmentMap  # noqa: E402
+from lookingglass.physics.optics import IOR_AIR, IOR_GLASS  # noqa: E402
 from lookingglass.render.raycast import RayCaster  # noqa: E402
 from lookingglass.render.testshapes import radial_blob  # noqa: E402
 from lookingglass.render.tracer import (RenderConfig, _dielectric, _Surface, render_views,  # noqa: E402
@@ -81,7 +82,7 @@ def bench_embree(mesh: trimesh.Trimesh, cams: Cameras, repeats: int) -> dict:
     # Secondary rays: one refraction and one reflection off the first hit of each camera ray.
     surf = _Surface(mesh)
     ih, ph, nh = surf.cast(torch.from_numpy(o), torch.from_numpy(d), offset=False)
-    r, t, _, tir, _ = _dielectric(torch.from_numpy(d)[ih], nh, 1.4723, 1.0003)
+    r, t, _, tir, _ = _dielectric(torch.from_numpy(d)[ih], nh, IOR_GLASS, IOR_AIR)
     so = torch.cat([ph, ph[~tir]]).numpy()
     sd = torch.cat([r, t[~tir]]).numpy()
     best2 = min(_timed(lambda: caster.intersect_raw(so, sd, offset=True))[1] for _ in range(repeats))

@@ -17,11 +17,12 @@ import trimesh
 from lookingglass.capture.images import read_envmap
 from lookingglass.physics.camera import Cameras
 from lookingglass.physics.environment import EnvironmentMap
+from lookingglass.physics.optics import IOR_AIR, IOR_GLASS
 from lookingglass.render.raycast import RayCaster, object_masks
 from lookingglass.render.testshapes import radial_blob
 from lookingglass.render.tracer import RenderConfig, render_views, trace_two_bounce
 
-IOR, EXT_IOR = 1.4723, 1.0003
+IOR, EXT_IOR = IOR_GLASS, IOR_AIR
 
 # The shared map with the lowest dynamic range (max/mean 9.6 at 256 x 128; the others reach
 # 20-18000): Mitsuba's variance, not ours, limits how tightly we can compare, and it grows with

@@ -37,7 +37,7 @@ from ..physics.camera import Cameras
 from .images import read_envmap, read_image, read_mask, write_image, write_mask
 
 SCENE_FILE = "scene.json"
-DEFAULT_IOR = 1.4723
+from ..physics.constants import IOR_GLASS as DEFAULT_IOR
 IMAGE_ENCODINGS = ("srgb", "linear")
 
 _TOP_KEYS = ("ior", "envmap", "envmap_scale", "image_encoding", "views")

@@ -63,6 +63,7 @@ import numpy as np
 
 from ..errors import LookingGlassError
 from ..hull import HullConfig
+from ..physics.constants import IOR_AIR, IOR_GLASS, PAPER_RENDER_FOV_X_DEG as PAPER_FOV_X_DEG
 from ..parallel import map_in_processes, worker_count
 from .shapes import ShapeConfig
 
@@ -96,13 +97,13 @@ class DatasetConfig:
     preset: str = "cpu"
     width: int = 128
     height: int = 96
-    fov_x_deg: float = 63.4
+    fov_x_deg: float = PAPER_FOV_X_DEG
     envmap_height: int = 128
     samples_per_axis: int = 2
     max_depth: int = 64
     prune_threshold: float = 1e-3
-    ior: float = 1.4723
-    ext_ior: float = 1.0003
+    ior: float = IOR_GLASS
+    ext_ior: float = IOR_AIR
     p_procedural: float = 0.5
     test_envmaps: tuple[str, ...] = ("forest_slope_1k.hdr", "potsdamer_platz_1k.hdr")
     hull: HullConfig = field(default_factory=HullConfig)

@@ -28,8 +28,7 @@ import torch
 
 from ..physics.camera import Cameras
 
-PAPER_FOV_X_DEG = 63.4
-PAPER_IMAGE_SIZE = (480, 360)  # width, height of the rendered images
+from ..physics.constants import PAPER_IMAGE_SIZE, PAPER_RENDER_FOV_X_DEG as PAPER_FOV_X_DEG  # noqa: F401
 
 
 def rig_layout(num_views: int) -> tuple[np.ndarray, np.ndarray, float, float]:

@@ -18,6 +18,7 @@ from torch import Tensor, nn
 
 from ..physics.camera import Cameras
 from ..physics.environment import EnvironmentMap
+from ..physics.optics import IOR_AIR, IOR_GLASS
 from .render_layer import error_map, first_interface, second_interface
 
 # The supplement's cost-volume angles: theta = 0, t, t, t and phi = 0, 0, 120, 240 degrees, with
@@ -201,8 +202,8 @@ def sample_cone(normals: Tensor, theta_deg: float, k: int = 4) -> Tensor:
 
 
 def build_cost_volume(envmap: EnvironmentMap, image: Tensor, mask: Tensor, vh_n1: Tensor, vh_n2: Tensor,
-                      cameras: Cameras, theta_deg: float, k: int = 4, ior: float = 1.4723,
-                      ext_ior: float = 1.0003) -> Tensor:
+                      cameras: Cameras, theta_deg: float, k: int = 4, ior: float = IOR_GLASS,
+                      ext_ior: float = IOR_AIR) -> Tensor:
     """For every pair (Ñ1_k, Ñ2_k') render an error map and TIR mask with the rendering layer.
 
     image (V,H,W,3) in the environment's units; mask (V,H,W); vh_n1/2 (V,H,W,3) camera frame;

@@ -12,8 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-IOR_AIR = 1.0003
-IOR_GLASS = 1.4723
+from .constants import IOR_AIR, IOR_GLASS  # noqa: F401 (re-exported)
 
 
 def _dot(a: Tensor, b: Tensor) -> Tensor:
