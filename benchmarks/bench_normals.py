@@ -24,12 +24,13 @@ from lookingglass.data.envmaps import procedural_envmap
 from lookingglass.data.rigs import paper_rig
 from lookingglass.data.shapes import random_shape
 from lookingglass.hull import carve_visual_hull
-from lookingglass.normals.inputs import prepare_inputs
+from lookingglass.normals.inputs import NormalInputs
 from lookingglass.normals.latent import LatentOptConfig
 from lookingglass.normals.model import NormalNet, cpu_config
-from lookingglass.normals.stage import predict_normals, shipped_weights
-from lookingglass.normals.train import load_weights
+from lookingglass.normals.predict import predict_normals
 from lookingglass.physics.environment import EnvironmentMap
+from lookingglass.physics.optics import IOR_GLASS
+from lookingglass.weights import DEFAULT_ENVMAP_HEIGHT, load_normal_net, shipped_weights
 from lookingglass.render.tracer import render_views
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,18 +46,21 @@ def main() -> int:
     res = render_views(shape, EnvironmentMap(torch.from_numpy(env)), cams)
     hull = carve_visual_hull(res.mask.numpy(), cams).mesh
     path, _ = shipped_weights(10)
-    net = load_weights(path) if path else NormalNet(cpu_config()).eval()
+    weights = load_normal_net(path) if path else None
+    net = weights.net if weights else NormalNet(cpu_config()).eval()
+    envmap_height = weights.envmap_height if weights else DEFAULT_ENVMAP_HEIGHT
     source = str(path.relative_to(ROOT)) if path else "untrained cpu-preset network"
     latent = LatentOptConfig()
     t_prep, t_net, t_lat = [], [], []
     for _ in range(args.repeats):
         t0 = time.perf_counter()
-        x = prepare_inputs(res.image, res.mask, torch.from_numpy(env), cams, hull, net.cfg.width, net.cfg.height,
-                           128, 1.4723)
+        x = NormalInputs.from_capture(res.image, res.mask, env, cams, IOR_GLASS, hull, net.cfg.width, net.cfg.height,
+                                      envmap_height)
+        _ = x.hull_error  # the error maps are part of making the inputs
         t1 = time.perf_counter()
-        predict_normals(net, x, None, 1.4723)
+        predict_normals(net, x, None)
         t2 = time.perf_counter()
-        predict_normals(net, x, latent, 1.4723)
+        predict_normals(net, x, latent)
         t3 = time.perf_counter()
         t_prep.append(t1 - t0)
         t_net.append(t2 - t1)

@@ -12,12 +12,14 @@ import argparse
 import time
 
 import numpy as np
-import torch
 
 from lookingglass.data.torch_dataset import TransparentSceneDataset
 from lookingglass.normals.evaluate import NormalErrors
-from lookingglass.normals.latent import LatentOptConfig, optimize_latent
-from lookingglass.normals.train import load_weights, scene_tensors
+from lookingglass.normals.inputs import NormalInputs
+from lookingglass.normals.latent import LatentOptConfig
+from lookingglass.normals.predict import predict_normals
+from lookingglass.normals.train import normal_targets
+from lookingglass.weights import load_normal_net
 
 
 def schedule(entry: str, lrs: list[float]) -> tuple[tuple[int, int], list[float]]:
@@ -43,19 +45,18 @@ def main() -> int:
         phases, entry_lrs = schedule(entry, lrs)
         ks += [(phases, lr) for lr in (entry_lrs if sum(phases) else entry_lrs[:1])]
     ds = TransparentSceneDataset(args.data, "test", views=args.data_views)
-    net = load_weights(args.weights)
+    weights = load_normal_net(args.weights)
+    net = weights.net
     rows = {key: NormalErrors() for key in ks}
     for i in range(min(args.scenes, len(ds))):
-        t = scene_tensors(ds[i], net.cfg, 1.4723)
+        capture, hull = ds.capture(i), ds.hull(i)  # reconstruct's own inputs
+        x = NormalInputs.from_capture(capture.images, capture.masks, capture.envmap, capture.cameras, capture.ior,
+                                      hull.mesh, net.cfg.width, net.cfg.height, weights.envmap_height)
+        truth = normal_targets(ds[i])
         for k, lr in ks:
             start = time.perf_counter()
-            if sum(k) == 0:
-                with torch.no_grad():
-                    n1, n2 = net(t["inputs"], t["cost_volume"])
-            else:
-                n1, n2, _ = optimize_latent(net, t["inputs"], t["cost_volume"], t["envmap"], t["image"], t["mask"],
-                                            t["cameras"], LatentOptConfig(*k, lr=lr))
-            rows[k, lr].add(n1.detach(), n2.detach(), t, time.perf_counter() - start)
+            maps = predict_normals(net, x, LatentOptConfig(*k, lr=lr) if sum(k) else None)
+            rows[k, lr].add(maps, truth, time.perf_counter() - start)
         print(f"scene {i + 1}/{min(args.scenes, len(ds))}", flush=True)
     print(f"\nLatent-optimization sweep: {args.weights}, first {args.scenes} test scenes of {args.data}, "
           f"{args.data_views} views\n")

@@ -288,14 +288,14 @@ def train_points(
     """Train the point network on normal-net features (cached in OUT/features; resumes from
     OUT/checkpoint.pt; runs under torchrun for DDP)."""
     from .data.torch_dataset import TransparentSceneDataset
-    from .normals.train import load_weights
     from .points.train import point_train_preset, train_points as run
     from .progress import Reporter
+    from .weights import load_normal_net
 
     # dataclasses.replace re-runs __post_init__, which checks loss and strategy
     config = _with_overrides(point_train_preset(preset), loss=loss, strategy=strategy, seed=seed,
                              max_scenes=max_scenes, epochs=epochs, lr=lr, lr_halve_epochs=lr_halve_epochs, init=init)
-    views = load_weights(normals).cfg.num_views
+    views = load_normal_net(normals).net.cfg.num_views
     dataset = TransparentSceneDataset(data, "train", views=views, augment=False)
     run(dataset, out, config, normals, device=_device(device), reporter=Reporter(quiet=quiet),
         threads=threads)
@@ -351,11 +351,11 @@ def eval_shapes(
     from .data.torch_dataset import TransparentSceneDataset
     from .fileio import write_json
     from .normals.latent import LatentOptConfig
-    from .normals.stage import shipped_weights
     from .points.evaluate import evaluate_shapes, markdown_table
     from .points.features import STRATEGIES
     from .points.stage import SurfaceConfig
     from .progress import Reporter
+    from .weights import shipped_weights
 
     chosen = tuple(s.strip().upper() for s in strategies.split(",") if s.strip())
     if not chosen or any(s not in STRATEGIES for s in chosen):

@@ -13,6 +13,11 @@ def config_to_dict(config: Any) -> dict:
     return dataclasses.asdict(config)
 
 
+def changed_keys(a: dict, b: dict) -> list[str]:
+    """The top-level keys whose values differ between two config dicts (either side's), sorted."""
+    return sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+
+
 def config_from_dict(cls: type, data: dict, where: str = "config") -> Any:
     """Build dataclass `cls` from nested dicts, checking keys and basic types."""
     if not isinstance(data, dict):

@@ -107,6 +107,18 @@ class VisualHull:
     view_coverage: np.ndarray
     timings: dict[str, float] = dataclasses.field(default_factory=dict)
 
+    @classmethod
+    def from_mesh(cls, mesh: trimesh.Trimesh, center=None, scale: float | None = None,
+                  voxel_size: float = float("nan"), view_coverage=()) -> "VisualHull":
+        """A hull carved earlier (e.g. stored by `generate`), with its normalization when known
+        (else computed as `carve_visual_hull` does: the bounding box's centre, the farthest vertex)."""
+        vertices = np.asarray(mesh.vertices, np.float64)
+        if center is None or scale is None:
+            center, scale = hull_normalization(vertices)
+        return cls(mesh=mesh, center=np.asarray(center, np.float64), scale=float(scale),
+                   bbox=np.stack([vertices.min(axis=0), vertices.max(axis=0)]), voxel_size=float(voxel_size),
+                   grid_shape=(0, 0, 0), view_coverage=np.asarray(view_coverage, np.float64))
+
     def mesh_normalized(self) -> trimesh.Trimesh:
         """A copy of the hull in the normalized frame (inside the unit sphere, max |p| = 1)."""
         m = self.mesh.copy()
@@ -124,6 +136,13 @@ class VisualHull:
     def cameras_normalized(self, cameras: Cameras) -> Cameras:
         """The capture's cameras expressed in the normalized frame."""
         return cameras.transformed(torch.as_tensor(self.center), self.scale)
+
+
+def hull_normalization(vertices: np.ndarray) -> tuple[np.ndarray, float]:
+    """(center (3,), scale) with (p - center) / scale inside the unit sphere, max |p| = 1: the
+    bounding box's centre and the distance to the farthest vertex. vertices: (N, 3)."""
+    center = (vertices.min(axis=0) + vertices.max(axis=0)) / 2
+    return center, float(np.linalg.norm(vertices - center, axis=1).max())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -657,15 +676,16 @@ def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig()
 
     # Marching cubes and MeshLab both return shared vertices, so no merging (process=False keeps
     # the topology exactly as built; merging coincident vertices could pinch it).
-    mesh = trimesh.Trimesh(verts, faces, process=False, validate=False)
+    # Vertices rounded to float32 (the precision PLY files, the renderer and `generate`'s stored
+    # hulls keep; ~1e-7 of the box, far below a voxel), so a hull read back is the hull carved.
+    mesh = trimesh.Trimesh(verts.astype(np.float32).astype(np.float64), faces, process=False, validate=False)
     if not (np.isfinite(mesh.vertices).all() and mesh.is_watertight and mesh.is_winding_consistent):
         raise LookingGlassError(
             "internal error: the carved hull is not a closed, consistently oriented surface "
             "(please report it, with the masks and cameras)")
     if mesh.volume < 0:  # consistent winding: positive volume <=> outward normals
         mesh.invert()
-    center = (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0)) / 2
-    scale = float(np.linalg.norm(mesh.vertices - center, axis=1).max())
+    center, scale = hull_normalization(np.asarray(mesh.vertices))
     step("finish", 1.0)
     timings["total"] = time.perf_counter() - t_start
     return VisualHull(mesh=mesh, center=center, scale=scale, bbox=np.stack([lo, hi]),

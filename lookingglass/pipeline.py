@@ -11,6 +11,7 @@ points with the mapped normals, moved and refined by PNet when its weights ship,
 
 from __future__ import annotations
 
+import dataclasses
 import platform
 import time
 import warnings
@@ -25,11 +26,11 @@ from .capture.scene import load_capture
 from .config import PipelineConfig, config_to_dict, resolve_device
 from .errors import LookingGlassError
 from .fileio import write_atomic, write_json
-from .hull import carve_visual_hull
-from .normals.stage import run_normal_stage, shipped_weights
+from .hull import VisualHull, carve_visual_hull
+from .normals.stage import NormalStageResult, run_normal_stage, write_normal_views
 from .points.stage import surface_from_normals
-from .points.train import load_point_weights
 from .progress import Reporter, peak_memory_mb
+from .weights import load_normal_net, load_point_net, shipped_weights
 
 STAGES = ("visual_hull", "normals", "surface")
 
@@ -78,6 +79,46 @@ def write_points(path: Path, points: np.ndarray, normals: np.ndarray) -> Path:
     return write_atomic(path, lambda tmp: Path(tmp).write_bytes(header.encode("ascii") + records.tobytes()))
 
 
+def _normals(capture, hull: VisualHull, config: PipelineConfig, device: str, out_dir: Path,
+             reporter: Reporter) -> tuple[NormalStageResult | None, int]:
+    """The normals stage with the weights the config names (or the shipped ones for the nearest
+    view count); writes OUT/normals/. (None, 0) when no weights ship."""
+    requested = config.normals.views or capture.num_views
+    path, trained_views = (Path(config.normals.weights), requested) if config.normals.weights \
+        else shipped_weights(requested)
+    if path is None:
+        reporter.warn("no trained normal-network weights ship with this build: stopping after the visual hull")
+        return None, 0
+    weights = load_normal_net(path)
+    with reporter.stage("normals", "normals (network + latent optimization)") as rec:
+        result = run_normal_stage(capture, hull, weights, config.normals.latent, device)
+        write_normal_views(out_dir / "normals", result)
+        rec.update(result.report, trained_views=trained_views)
+        if trained_views != requested:
+            rec["note"] = f"{requested} views: using the weights trained for {trained_views}"
+    return result, trained_views
+
+
+def _surface(hull: VisualHull, normals: NormalStageResult, config: PipelineConfig, trained_views: int,
+             device: str, out_dir: Path, reporter: Reporter) -> trimesh.Trimesh:
+    """The surface stage with PNet (the config's weights, or the shipped ones for the normal net's
+    view count); writes OUT/points.ply and returns the mesh."""
+    path = Path(config.surface.point_weights) if config.surface.point_weights \
+        else shipped_weights(trained_views, "points")[0]
+    point_net = load_point_net(path) if path is not None else None
+    if point_net is not None:
+        point_net.net.to(device)
+    with reporter.stage("surface", "surface (feature mapping + PNet + Poisson)") as rec:
+        mesh, oriented = surface_from_normals(hull, normals.maps, config.surface, point_net)
+        write_points(out_dir / "points.ply", oriented.points, oriented.normals)
+        if "closing" in mesh.metadata:  # Poisson's surface had handles; the narrow ones were filled
+            rec["tunnels_closed"] = mesh.metadata["closing"]
+        rec.update(point_weights=str(path) if path is not None else None, mesh=mesh_summary(mesh),
+                   points=int(len(oriented.points)), points_seen=float(oriented.seen.mean()),
+                   strategy=point_net.strategy if point_net is not None else config.surface.strategy)
+    return mesh
+
+
 def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = None, force: bool = False,
                 reporter: Reporter | None = None) -> dict:
     """Reconstruct the object in the scene folder `scene_dir`; returns the report dict."""
@@ -100,44 +141,19 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
             rec.update(views=capture.num_views, image_size=[capture.width, capture.height])
 
         with reporter.stage("visual_hull", "visual hull") as rec:
-            hull = carve_visual_hull(capture.masks, capture.cameras, config.hull)
+            # the device is resolved once, for every stage: the hull carves where the networks run
+            hull = carve_visual_hull(capture.masks, capture.cameras, dataclasses.replace(config.hull, device=device))
             write_mesh(out_dir / "visual_hull.ply", hull.mesh)
             rec.update(mesh=mesh_summary(hull.mesh), voxel_size=float(hull.voxel_size),
                        timings={k: round(float(v), 3) for k, v in hull.timings.items()})
 
         best, best_stage = hull.mesh, "visual_hull"
-        requested_views = config.normals.views or capture.num_views
-        weights, trained_views = (Path(config.normals.weights), requested_views) if config.normals.weights \
-            else shipped_weights(requested_views)
-        normals = None
-        if "normals" not in wanted:
-            pass
-        elif weights is None:
-            reporter.warn("no trained normal-network weights ship with this build: stopping after the visual hull")
-        else:
-            with reporter.stage("normals", "normals (network + latent optimization)") as rec:
-                normals = run_normal_stage(capture.images, capture.masks, capture.envmap, capture.cameras,
-                                           hull.mesh, capture.ior, out_dir, config.normals, weights, device)
-                rec.update(normals.report)
-                rec["trained_views"] = trained_views
-                if trained_views != requested_views:
-                    rec["note"] = f"{requested_views} views: using the weights trained for {trained_views}"
-
+        normals, trained_views = None, 0
+        if "normals" in wanted:
+            normals, trained_views = _normals(capture, hull, config, device, out_dir, reporter)
         if normals is not None and "surface" in wanted:
-            point_weights = Path(config.surface.point_weights) if config.surface.point_weights \
-                else shipped_weights(trained_views, "points")[0]
-            point_net = load_point_weights(point_weights).to(device) if point_weights is not None else None
-            with reporter.stage("surface", "surface (feature mapping + PNet + Poisson)") as rec:
-                mesh, oriented = surface_from_normals(hull.mesh, hull.center, hull.scale, normals.cameras,
-                                                      normals.n1, normals.error, normals.tir, normals.mask,
-                                                      config.surface, point_net)
-                rec["point_weights"] = str(point_weights) if point_weights is not None else None
-                write_points(out_dir / "points.ply", oriented.points, oriented.normals)
-                if "closing" in mesh.metadata:  # Poisson's surface had handles; the narrow ones were filled
-                    rec["tunnels_closed"] = mesh.metadata["closing"]
-                rec.update(mesh=mesh_summary(mesh), points=int(len(oriented.points)),
-                           points_seen=float(oriented.seen.mean()), strategy=config.surface.strategy)
-            best, best_stage = mesh, "surface"
+            best = _surface(hull, normals, config, trained_views, device, out_dir, reporter)
+            best_stage = "surface"
         write_mesh(out_dir / "mesh.ply", best)
     messages = [str(w.message) for w in caught]
     for message in messages:

@@ -39,13 +39,13 @@ from typing import Any, Callable, Protocol
 
 import torch
 import torch.distributed as dist
-from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
-from .configio import config_from_dict
+from .configio import changed_keys
 from .errors import LookingGlassError
-from .fileio import sha256_file, write_atomic, write_json
+from .fileio import write_atomic, write_json
 from .progress import Reporter
+from .weights import check_initial_weights, load_initial_weights, save_weights
 
 __all__ = [
     "Schedule",
@@ -55,8 +55,6 @@ __all__ = [
     "epoch_order",
     "save_checkpoint",
     "load_checkpoint",
-    "save_weights",
-    "load_weights",
     "dist_info",
     "record_or_compare",
 ]
@@ -114,89 +112,6 @@ def load_checkpoint(path: Path) -> dict:
         raise LookingGlassError(f"cannot read checkpoint ({exc})", path) from None
 
 
-def save_weights(run_dir: Path, net: nn.Module, extra: dict | None = None) -> Path:
-    """RUN_DIR/weights.safetensors + weights.json ({"net": asdict(net.cfg), **extra}).
-    `net.cfg` is the network's config dataclass."""
-    run_dir = Path(run_dir)
-    state = {k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
-    write_atomic(run_dir / "weights.safetensors", lambda tmp: save_file(state, str(tmp)))
-    write_json(run_dir / "weights.json", {"net": dataclasses.asdict(net.cfg), **(extra or {})})
-    return run_dir / "weights.safetensors"
-
-
-def load_weights(path: str | os.PathLike, config_cls: type, net_cls: Callable[[Any], nn.Module],
-                 kind: str | None = None) -> tuple[nn.Module, dict]:
-    """A net from weights.safetensors and the weights.json beside it (never unpickles).
-
-    config_cls: the network's config dataclass; net_cls(cfg) builds the net. kind: when given and
-    weights.json names a different "kind", refuse (e.g. point-net weights handed to the normal
-    net); files without a "kind" are accepted. Returns (net in eval mode on the CPU, the JSON).
-    """
-    path = Path(path)
-    meta_path = path.with_suffix(".json")
-    if not path.exists():
-        raise LookingGlassError("weights file not found", path)
-    if not meta_path.exists():
-        raise LookingGlassError("network config not found beside the weights", meta_path)
-    try:
-        meta = json.loads(meta_path.read_text())
-    except ValueError as exc:
-        raise LookingGlassError(f"cannot read the network config ({exc})", meta_path) from None
-    if not isinstance(meta, dict) or "net" not in meta:
-        raise LookingGlassError('network config has no "net" entry', meta_path)
-    if kind is not None and meta.get("kind", kind) != kind:
-        raise LookingGlassError(f"these are {meta['kind']}-network weights, not {kind}-network ones", path)
-    cfg = config_from_dict(config_cls, meta["net"], where=str(meta_path))
-    net = net_cls(cfg)
-    try:
-        net.load_state_dict(load_file(str(path)))
-    except Exception as exc:
-        raise LookingGlassError(f"weights do not fit the network config ({exc})", path) from None
-    return net.eval(), meta
-
-
-def check_initial_weights(path: str | os.PathLike, net_config: Any) -> dict:
-    """Refuse --init weights that are missing or made for another network config (checked
-    before a trainer spends time on anything else). Keys the config class lists in
-    `FINE_TUNE_FREE` (settings that change no parameter, e.g. the normal net's view count) may
-    differ: such weights start the new run, which keeps its own setting. Keys in
-    `FINE_TUNE_WIDEN` (input widths) may grow, never shrink: the net's `widen_initial_state`
-    fits the weights (load_initial_weights). Returns the saved network config (weights.json "net")."""
-    path = Path(path)
-    meta_path = path.with_suffix(".json")
-    for p in (path, meta_path):
-        if not p.exists():
-            raise LookingGlassError("--init weights not found" if p == path else
-                                    "network config not found beside the --init weights", p)
-    try:
-        saved = json.loads(meta_path.read_text()).get("net") or {}
-    except (ValueError, AttributeError) as exc:
-        raise LookingGlassError(f"cannot read the network config ({exc})", meta_path) from None
-    wanted = json.loads(json.dumps(dataclasses.asdict(net_config)))
-    free = getattr(type(net_config), "FINE_TUNE_FREE", frozenset())
-    widen = getattr(type(net_config), "FINE_TUNE_WIDEN", frozenset())
-    changed = [k for k in _changed_keys(saved, wanted)
-               if k not in free and not (k in widen and int(saved.get(k) or 0) <= int(wanted[k]))]
-    if changed:
-        raise LookingGlassError(f"the --init weights are for another network (differs in "
-                                f"{', '.join(changed)})", meta_path)
-    return saved
-
-
-def load_initial_weights(net: nn.Module, path: str | os.PathLike) -> str:
-    """Load --init weights into `net` (checked first); returns the file's SHA-256, which the new
-    weights.json records."""
-    saved = check_initial_weights(path, net.cfg)
-    try:
-        state = load_file(str(path))
-        if hasattr(net, "widen_initial_state"):
-            state = net.widen_initial_state(state, saved)
-        net.load_state_dict(state)
-    except Exception as exc:
-        raise LookingGlassError(f"cannot load the --init weights ({exc})", path) from None
-    return sha256_file(path)
-
-
 def dist_info() -> tuple[int, int]:
     """(rank, world size); (0, 1) outside a process group."""
     if dist.is_available() and dist.is_initialized():
@@ -215,7 +130,7 @@ def record_or_compare(path: Path, data: dict, rank: int, mismatch: str, advice: 
         except ValueError as exc:
             raise LookingGlassError(f"cannot read {path.name} ({exc})", path) from None
         if saved != data:
-            raise LookingGlassError(f"{mismatch} (differs in {', '.join(_changed_keys(saved, data))}); {advice}", path)
+            raise LookingGlassError(f"{mismatch} (differs in {', '.join(changed_keys(saved, data))}); {advice}", path)
     elif rank == 0:
         write_json(path, data)
 
@@ -338,11 +253,6 @@ class TrainingSession:
             save_weights(self.run_dir, net, extra)
         self.barrier()
         return metrics
-
-
-def _changed_keys(a: dict, b: dict) -> list[str]:
-    """The top-level keys whose values differ between two JSON objects, sorted."""
-    return sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
 
 
 def _mean(values: list[float]) -> float:

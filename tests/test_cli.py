@@ -11,7 +11,7 @@ import trimesh
 from lookingglass.capture.images import write_image
 from lookingglass.data.envmaps import procedural_envmap
 from lookingglass.metrics import shape_metrics
-from lookingglass.normals.stage import shipped_weights
+from lookingglass.weights import shipped_weights
 
 CLI = [sys.executable, "-m", "lookingglass.cli"]
 

@@ -7,7 +7,7 @@ import pytest
 
 from lookingglass.data.torch_dataset import TransparentSceneDataset
 from lookingglass.metrics import shape_metrics
-from lookingglass.normals.stage import shipped_weights
+from lookingglass.weights import shipped_weights
 
 from test_cli import run
 

@@ -419,11 +419,14 @@ def test_surface_of_exact_normals_is_the_sphere(scene):
     from lookingglass.points.stage import SurfaceConfig, surface_from_normals
 
     centre, scale = np.array([0.3, -0.2, 0.1]), 2.0  # capture frame = unit frame x 2 + centre
+    from lookingglass.hull import VisualHull
+    from lookingglass.normals.predict import NormalMaps
+
     hull = scene["hull"].copy()
     hull.vertices = np.asarray(hull.vertices) * scale + centre
     cams = scene["cams"].transformed(torch.as_tensor(-centre / scale), 1.0 / scale)
-    mesh, oriented = surface_from_normals(hull, centre, scale, cams, scene["n1"], scene["err"], scene["tir"],
-                                          scene["mask"], SurfaceConfig(points=4000))
+    maps = NormalMaps(cams, scene["n1"], scene["n1"], scene["err"], scene["tir"], scene["mask"])
+    mesh, oriented = surface_from_normals(VisualHull.from_mesh(hull, centre, scale), maps, SurfaceConfig(points=4000))
     assert mesh.is_watertight and len(oriented.points) == 4000 and oriented.seen.mean() > 0.95  # the rig misses a polar cap
     radius = np.linalg.norm((np.asarray(mesh.vertices) - centre) / scale, axis=1)
     voxel = 1.1 * 2 / 2 ** 8

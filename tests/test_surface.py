@@ -14,7 +14,9 @@ import torch
 import trimesh
 
 from lookingglass.errors import LookingGlassError
+from lookingglass.hull import VisualHull
 from lookingglass.metrics import shape_metrics
+from lookingglass.normals.predict import NormalMaps
 from lookingglass.surface import poisson_surface
 
 VOXEL = 1.1 * 2.0 / 2 ** 8  # depth 8, 2-wide bounding box
@@ -236,15 +238,21 @@ def surface_stage_on(monkeypatch, poisson: trimesh.Trimesh, center: np.ndarray, 
 
     points = np.zeros((4, 3), np.float32)
 
-    class Unmoved:  # the cameras only need transforming into the hull's frame
+    class Unmoved:  # the cameras only need moving to the CPU and into the hull's frame
         def transformed(self, center, scale):
+            return self
+
+        def to(self, device):
             return self
 
     monkeypatch.setattr(stage, "map_normals_to_hull",
                         lambda *args, **kwargs: stage.OrientedPoints(points, points, np.ones(4, bool), points))
     monkeypatch.setattr(stage, "_poisson", lambda *args: poisson.copy())
-    mesh, _ = stage.surface_from_normals(trimesh.creation.icosphere(), center, scale, Unmoved(), None, None,
-                                         None, None, stage.SurfaceConfig())
+    sphere = trimesh.creation.icosphere()
+    hull = VisualHull.from_mesh(trimesh.Trimesh(sphere.vertices * scale + center, sphere.faces), center, scale)
+    empty = torch.zeros(0)
+    maps = NormalMaps(Unmoved(), empty, empty, empty, empty, empty)
+    mesh, _ = stage.surface_from_normals(hull, maps, stage.SurfaceConfig())
     return mesh
 
 

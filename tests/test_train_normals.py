@@ -13,7 +13,12 @@ from lookingglass.data.dataset import DatasetConfig, generate_dataset
 from lookingglass.data.torch_dataset import TransparentSceneDataset
 from lookingglass.errors import LookingGlassError
 from lookingglass.normals.model import cpu_config
-from lookingglass.normals.train import TrainConfig, load_weights, train_normals
+from lookingglass.normals.train import TrainConfig, train_normals
+from lookingglass.weights import load_normal_net
+
+
+def load_weights(path):
+    return load_normal_net(path).net
 
 
 @pytest.fixture(scope="module")

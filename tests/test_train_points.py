@@ -18,10 +18,11 @@ from lookingglass.data.dataset import DatasetConfig, generate_dataset
 from lookingglass.data.torch_dataset import TransparentSceneDataset
 from lookingglass.errors import LookingGlassError
 from lookingglass.normals.model import cpu_config as normal_cpu_config
-from lookingglass.normals.train import TrainConfig, load_weights, train_normals
+from lookingglass.normals.train import TrainConfig, train_normals
 from lookingglass.points.features import FEATURE_COLUMNS, NUM_FEATURES, PAPER_FEATURES
 from lookingglass.points.model import PointNetConfig
-from lookingglass.points.train import (PointTrainConfig, load_point_weights, prepare_features, point_train_preset,
+from lookingglass.weights import load_normal_net, load_point_net
+from lookingglass.points.train import (PointTrainConfig, prepare_features, point_train_preset,
                                        train_points)
 
 
@@ -60,7 +61,7 @@ def test_training_caches_features_lowers_loss_and_ships_weights(tiny, tmp_path):
     log = _log(run)
     assert len(log) == 4 and log[-1]["step"] == 12
     assert log[-1]["loss"] < log[0]["loss"] and log[-1]["loss"] < log[-1]["loss_input"]
-    net = load_point_weights(run / "weights.safetensors")
+    net = load_point_net(run / "weights.safetensors").net
     assert net.cfg == _config().net
     assert json.loads((run / "weights.json").read_text())["loss"] == "chamfer"
 
@@ -69,13 +70,13 @@ def test_training_caches_features_lowers_loss_and_ships_weights(tiny, tmp_path):
     train_points(ds, run, _config(epochs=4), normals)
     assert [p.stat().st_mtime_ns for p in cached] == mtimes
     cached[1].unlink()
-    summary = prepare_features(ds, run, _config(epochs=4), load_weights(normals))
+    summary = prepare_features(ds, run, _config(epochs=4), load_normal_net(normals).net)
     assert summary["made"] == [1] and summary["skipped"] == 2
 
     with pytest.raises(LookingGlassError, match="different config"):
         train_points(ds, run, _config(epochs=5), normals)
     with pytest.raises(LookingGlassError, match="normals-network weights"):
-        load_point_weights(normals)
+        load_point_net(normals).net
 
 
 def test_resume_after_interruption_is_exact(tiny, tmp_path):
@@ -88,8 +89,8 @@ def test_resume_after_interruption_is_exact(tiny, tmp_path):
     train_points(ds, tmp_path / "part", cfg, normals, max_steps=4)
     train_points(ds, tmp_path / "part", cfg, normals)
     assert _log(tmp_path / "part")[-1]["step"] == 9
-    a = load_point_weights(tmp_path / "full" / "weights.safetensors").state_dict()
-    b = load_point_weights(tmp_path / "part" / "weights.safetensors").state_dict()
+    a = load_point_net(tmp_path / "full" / "weights.safetensors").net.state_dict()
+    b = load_point_net(tmp_path / "part" / "weights.safetensors").net.state_dict()
     for k in a:
         torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-7)
 
@@ -110,7 +111,7 @@ def test_init_starts_from_given_weights(tiny, tmp_path):
     tuned = dataclasses.replace(_config(epochs=1), lr=0.0, init=str(init))
     assert tuned.net.in_features == NUM_FEATURES > PAPER_FEATURES
     train_points(ds, tmp_path / "tuned", tuned, normals)
-    a, b = load_point_weights(init), load_point_weights(tmp_path / "tuned" / "weights.safetensors")
+    a, b = load_point_net(init).net, load_point_net(tmp_path / "tuned" / "weights.safetensors").net
     sa, sb = a.state_dict(), b.state_dict()
     widened = {"sa.0.mlp.0.weight", f"fp.{len(b.fp) - 1}.mlp.0.weight"}
     for k in sa:
@@ -175,4 +176,4 @@ def test_cli_train_points(tiny, tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     log = _log(tmp_path / "cli")
     assert log[0]["step"] == 2 and log[0]["processes"] == 1
-    assert load_point_weights(tmp_path / "cli" / "weights.safetensors").cfg.num_points == 4096
+    assert load_point_net(tmp_path / "cli" / "weights.safetensors").net.cfg.num_points == 4096

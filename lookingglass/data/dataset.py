@@ -33,7 +33,7 @@ Rendering happens directly at the network's resolution (cpu preset 128 x 96, pap
 256 x 192, DESIGN.md): the image is anti-aliased by s x s stratified samples per pixel (a box
 filter, the same as area-downsampling a larger render), the two-bounce maps are taken at the pixel
 centres, exactly as the pipeline traces the hull's maps at the network's resolution
-(`normals.inputs.prepare_inputs`). The environment map is rendered at the height the dataset
+(`normals.inputs.NormalInputs.from_capture`). The environment map is rendered at the height the dataset
 serves it at (cpu 128 x 256, paper 256 x 512), so image and E agree exactly.
 
 Determinism: scene i is a function of (seed, split, i) alone -- its seeds come from

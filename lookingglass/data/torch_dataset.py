@@ -3,7 +3,7 @@
 Normalization (DESIGN.md, "Image units"): the stored images are linear HDR radiance. Per scene,
 one factor k = target_mean / mean(images) is computed over *all* pixels of *all* the scene's views
 and all three channels (not only the mask: the background matters to the network as much as the
-object, and at inference `normals.inputs.prepare_inputs` uses the same rule through the same
+object, and at inference `normals.inputs.NormalInputs.from_capture` uses the same rule through the same
 function, `exposure_factor`). The image becomes clip(k * image, 0, 1); the environment map gets
 the same k and is *not* clipped (it stays HDR: the rendering layer must see the sun as bright as
 it is). target_mean is 0.5; with augment=True it is drawn from U[0.4, 0.6] per item.
@@ -112,6 +112,39 @@ class TransparentSceneDataset(Dataset):
         """(ground truth, visual hull) of scene `index` as trimesh.Trimesh, world frame."""
         d = self.scene_dirs[index]
         return load_scene_mesh(d, "mesh"), load_scene_mesh(d, "hull")
+
+    def capture(self, index: int):
+        """Scene `index` as a `Capture`, what `load_capture` gives for its scene folder: the stored
+        linear images (not normalized), masks, environment map (unscaled), cameras and IoR; the
+        views this dataset serves. `save_scene(folder, c.spec, c.images, c.masks, c.envmap)`
+        writes it as a scene folder `reconstruct` reads (EXR images and map: exact)."""
+        from ..capture.scene import Capture, SceneSpec, ViewSpec
+        from .dataset import scene_cameras
+
+        scene_dir, meta = self.scene_dirs[index], self.meta(index)
+        sel = slice(None) if self.view_index is None else self.view_index
+        maps = load_maps(scene_dir)
+        cameras = scene_cameras(meta).select(sel)
+        # the rig's own look-at numbers (not re-derived from the float32 cameras), so a scene folder
+        # written from this capture gives back the very cameras the scene was rendered and carved with
+        rig = {k: np.asarray(meta["cameras"][k], np.float64)[sel].tolist() for k in ("origin", "target", "up",
+                                                                                      "fov_x_deg")}
+        views = [ViewSpec(image=f"images/{v:02d}.exr", mask=f"masks/{v:02d}.png", origin=tuple(rig["origin"][v]),
+                          target=tuple(rig["target"][v]), up=tuple(rig["up"][v]), fov_x_deg=rig["fov_x_deg"][v])
+                 for v in range(cameras.num_views)]
+        spec = SceneSpec(ior=float(meta["ior"]), envmap="envmap.exr", image_encoding="linear", views=views)
+        return Capture(root=scene_dir, spec=spec, images=maps["image"][sel].astype(np.float32),
+                       masks=maps["mask"][sel].astype(bool), envmap=np.array(scene_envmap(meta, self.envmap_folder)),
+                       cameras=cameras, ior=float(meta["ior"]))
+
+    def hull(self, index: int):
+        """Scene `index`'s stored visual hull as a `VisualHull` with the normalization `generate`
+        recorded (carved from every stored view; world frame)."""
+        from ..hull import VisualHull
+
+        frame = self.meta(index)["hull"]
+        return VisualHull.from_mesh(self.meshes(index)[1], frame["center"], frame["scale"],
+                                    frame.get("voxel_size", float("nan")), frame.get("view_coverage", ()))
 
     def _target_mean(self, index: int) -> float:
         if not self.augment:

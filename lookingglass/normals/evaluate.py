@@ -21,15 +21,17 @@ import torch
 
 from ..parallel import map_scenes
 from ..progress import Reporter
-from .latent import LatentOptConfig, optimize_latent
-from .render_layer import comparable, render_layer
-from .train import load_weights, scene_tensors
+from ..weights import DEFAULT_ENVMAP_HEIGHT, load_normal_net
+from .inputs import NormalInputs
+from .latent import LatentOptConfig
+from .predict import NormalMaps, predict_normals, render_normals
+from .train import normal_targets
 
 
 def _angles(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> np.ndarray:
-    """Angles in degrees between (V,3,H,W) normal maps over mask (V,H,W)."""
-    a = torch.nn.functional.normalize(a.permute(0, 2, 3, 1)[mask], dim=-1)
-    b = torch.nn.functional.normalize(b.permute(0, 2, 3, 1)[mask], dim=-1)
+    """Angles in degrees between (V,H,W,3) normal maps over mask (V,H,W)."""
+    a = torch.nn.functional.normalize(a[mask], dim=-1)
+    b = torch.nn.functional.normalize(b[mask], dim=-1)
     return torch.rad2deg(torch.atan2(torch.linalg.cross(a, b, dim=-1).norm(dim=-1), (a * b).sum(-1))).cpu().numpy()
 
 
@@ -43,13 +45,13 @@ class NormalErrors:
     count: int = 0
     seconds: float = 0.0
 
-    def add(self, n1, n2, t, seconds=0.0):
-        self.n1.append(_angles(n1, t["n1"], t["mask"]))
-        self.n2.append(_angles(n2, t["n2"], t["n2_valid"]))
-        out = render_layer(t["envmap"], n1.permute(0, 2, 3, 1), n2.permute(0, 2, 3, 1), t["cameras"])
-        m = t["mask"]
-        self.sq_err += float(((comparable(out.image) - t["image"])[m] ** 2).sum())
-        self.count += int(m.sum()) * 3
+    def add(self, maps: NormalMaps, truth: dict, seconds: float = 0.0) -> None:
+        """One scene's maps (`predict_normals` / `render_normals`) against its ground truth
+        (`normal_targets`: n1, n2 (V,3,H,W), mask, n2_valid (V,H,W))."""
+        self.n1.append(_angles(maps.n1, truth["n1"].permute(0, 2, 3, 1), truth["mask"]))
+        self.n2.append(_angles(maps.n2, truth["n2"].permute(0, 2, 3, 1), truth["n2_valid"]))
+        self.sq_err += 3 * float(maps.error[maps.mask].sum())  # error is the mean over RGB
+        self.count += 3 * int(maps.mask.sum())
         self.seconds += seconds
 
     def merge(self, other: NormalErrors) -> None:
@@ -90,36 +92,41 @@ class _NormalEvaluation:
 
     def __init__(self, dataset, weights: dict[str, Path], latent: LatentOptConfig | None, device: str = "cpu"):
         self.dataset, self.latent, self.device = dataset, latent, device
-        self.nets = {name: load_weights(path).to(device) for name, path in weights.items()}
+        self.nets = {name: load_normal_net(path) for name, path in weights.items()}
+        for w in self.nets.values():
+            w.net.to(device)
 
     def scene(self, i: int) -> dict[str, NormalErrors]:
-        """Every row's errors on test scene i."""
-        device, sample = self.device, self.dataset[i]
-        rows = {"vh": NormalErrors()}
-        base = None
-        for name, net in self.nets.items():
-            t = scene_tensors(sample, net.cfg, 1.4723, device)
-            base = base or t
-            start = time.perf_counter()
-            with torch.no_grad():
-                n1, n2 = net(t["inputs"], t["cost_volume"])
-            rows.setdefault(name, NormalErrors()).add(n1, n2, t, time.perf_counter() - start)
-            if name == "wr+cv" and self.latent is not None:
-                start = time.perf_counter()
-                o1, o2, _ = optimize_latent(net, t["inputs"], t["cost_volume"], t["envmap"], t["image"], t["mask"],
-                                            t["cameras"], self.latent)
-                rows.setdefault("wr+cv+op", NormalErrors()).add(o1.detach(), o2.detach(), t,
-                                                                time.perf_counter() - start)
-        if base is None:
-            from .model import NormalNetConfig
+        """Every row's errors on test scene i, on `reconstruct`'s path: the inputs are made from
+        the scene as a capture and its hull (`NormalInputs.from_capture`)."""
+        capture, hull = self.dataset.capture(i), self.dataset.hull(i)
+        truth = normal_targets(self.dataset[i], self.device)
+        made: dict[tuple, NormalInputs] = {}  # nets of one size and map height share their inputs
 
-            base = scene_tensors(sample, NormalNetConfig(use_error_map=False, use_cost_volume=False), 1.4723, device)
-        vh1 = sample["vh_n1"].to(device).float() * base["mask"].unsqueeze(1)
-        rows["vh"].add(vh1, sample["vh_n2"].to(device).float(), base)
+        def inputs(width: int, height: int, envmap_height: int) -> NormalInputs:
+            key = (width, height, envmap_height)
+            if key not in made:
+                made[key] = NormalInputs.from_capture(capture.images, capture.masks, capture.envmap, capture.cameras,
+                                                      capture.ior, hull.mesh, width, height, envmap_height,
+                                                      device=self.device)
+            return made[key]
+
+        rows: dict[str, NormalErrors] = {}
+        for name, w in self.nets.items():
+            x = inputs(w.net.cfg.width, w.net.cfg.height, w.envmap_height)
+            runs = [(name, None)] + ([("wr+cv+op", self.latent)] if name == "wr+cv" and self.latent else [])
+            for row, latent in runs:
+                start = time.perf_counter()
+                maps = predict_normals(w.net, x, latent)
+                rows.setdefault(row, NormalErrors()).add(maps, truth, time.perf_counter() - start)
+        H, W = truth["mask"].shape[1:]  # the hull's and the truth's rows at the truth's resolution
+        x = inputs(W, H, next(iter(self.nets.values())).envmap_height if self.nets else DEFAULT_ENVMAP_HEIGHT)
+        rows["vh"] = NormalErrors()
+        rows["vh"].add(render_normals(x, x.vh_n1, x.vh_n2), truth)
         # The ground truth's own render error, a reference: the two-bounce layer cannot render the
         # pixels whose light takes more interfaces or none after the first (angle errors 0 here).
         rows["gt"] = NormalErrors()
-        rows["gt"].add(base["n1"], base["n2"], base)
+        rows["gt"].add(render_normals(x, truth["n1"].permute(0, 2, 3, 1), truth["n2"].permute(0, 2, 3, 1)), truth)
         return rows
 
 

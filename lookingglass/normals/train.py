@@ -1,5 +1,6 @@
-"""Training of the normal network: what one step computes (`scene_tensors`, `normal_loss`) and
-the presets. The loop itself (Adam, the paper's step schedule, checkpoints and exact resume,
+"""Training of the normal network: what one step computes (`NormalInputs.from_sample` ->
+`network_tensors` -> the net -> `normal_loss`, the inference path's own inputs) and the
+presets. The loop itself (Adam, the paper's step schedule, checkpoints and exact resume,
 progress, metrics.jsonl, DistributedDataParallel under torchrun) is lookingglass.training's.
 
 RUN_DIR holds: config.json (the resolved TrainConfig), checkpoint.pt, metrics.jsonl (one line
@@ -11,19 +12,17 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import torch
 from torch import Tensor
 
 from .. import training
 from ..errors import LookingGlassError
-from ..physics.camera import Cameras
-from ..physics.environment import EnvironmentMap
+from ..physics.optics import IOR_GLASS
 from ..progress import Reporter
-from .inputs import hull_error_maps
-from .model import (HULL_N1_CHANNELS, HULL_N2_CHANNELS, PRESETS, NormalNet, NormalNetConfig, build_cost_volume,
-                    network_inputs)
+from ..weights import DEFAULT_ENVMAP_HEIGHT
+from .inputs import NormalInputs, network_tensors
+from .model import HULL_N1_CHANNELS, HULL_N2_CHANNELS, PRESETS, NormalNet, NormalNetConfig
 
 
 @dataclass
@@ -36,7 +35,7 @@ class TrainConfig:
     lr_halve_epochs: int = 2
     checkpoint_every: int = 50
     seed: int = 0
-    ior: float = 1.4723
+    ior: float = IOR_GLASS
     augment: bool = True
     max_scenes: int = 0  # 0: all
     views_per_step: int = 0  # 0: every view of the scene; k: k random views (views are independent images)
@@ -71,27 +70,12 @@ def select_views(sample: dict, count: int, generator: torch.Generator) -> dict:
             for k, v in sample.items()}
 
 
-def scene_tensors(sample: dict, cfg: NormalNetConfig, ior: float, device: str = "cpu") -> dict:
-    """Network inputs and targets of one dataset scene (see data/torch_dataset.py for the keys):
-    returns inputs (V,C,H,W), cost_volume (V,K²,8,H,W) or None, gt n1/n2 (V,3,H,W), masks, and
-    the rendering context (envmap, cameras, image (V,H,W,3), mask (V,H,W))."""
-    s = {k: (v.to(device) if isinstance(v, Tensor) else v) for k, v in sample.items()}
-    image = s["image"].permute(0, 2, 3, 1).float()
-    mask = s["mask"].bool()
-    V, H, W = mask.shape
-    cams = Cameras.look_at(s["origin"].cpu(), s["target"].cpu(), s["up"].cpu(), s["fov_x_deg"].cpu(), W, H,
-                           device=device)
-    env = EnvironmentMap(s["envmap"].permute(1, 2, 0).float())
-    vh_n1, vh_n2 = s["vh_n1"].permute(0, 2, 3, 1).float(), s["vh_n2"].permute(0, 2, 3, 1).float()
-    vh_error = vh_tir = None
-    if cfg.use_error_map:
-        vh_error, vh_tir = hull_error_maps(env, image, mask, vh_n1, vh_n2, cams, ior)
-    cost_volume = None
-    if cfg.use_cost_volume:
-        cost_volume = build_cost_volume(env, image, mask, vh_n1, vh_n2, cams, cfg.theta_deg, cfg.cost_volume_k, ior)
-    return dict(inputs=network_inputs(image, mask, vh_n1, vh_n2, vh_error, vh_tir), cost_volume=cost_volume,
-                n1=s["n1"].float(), n2=s["n2"].float(), mask=mask, n2_valid=s["valid"].bool() & mask,
-                image=image, envmap=env, cameras=cams)
+def normal_targets(sample: dict, device: str = "cpu") -> dict:
+    """The ground truth of one dataset scene the loss reads: n1, n2 (V,3,H,W), mask and n2_valid
+    (V,H,W) bool (N2 is supervised where the true path has exactly two interfaces)."""
+    mask = sample["mask"].to(device).bool()
+    return dict(n1=sample["n1"].to(device).float(), n2=sample["n2"].to(device).float(), mask=mask,
+                n2_valid=sample["valid"].to(device).bool() & mask)
 
 
 def normal_loss(n1: Tensor, n2: Tensor, t: dict) -> Tensor:
@@ -101,22 +85,6 @@ def normal_loss(n1: Tensor, n2: Tensor, t: dict) -> Tensor:
     l1 = (((n1 - t["n1"]) ** 2) * m1).sum() / m1.sum().clamp(min=1)
     l2 = (((n2 - t["n2"]) ** 2) * m2).sum() / m2.sum().clamp(min=1)
     return l1 + l2
-
-
-# The loop's checkpoint helpers, importable from here as before.
-save_checkpoint, load_checkpoint = training.save_checkpoint, training.load_checkpoint
-
-
-# ---- weights -------------------------------------------------------------------------------------
-def save_weights(run_dir: Path, net: NormalNet, extra: dict | None = None) -> Path:
-    """The shipped form: safetensors weights + the network config as JSON."""
-    return training.save_weights(run_dir, net, {"kind": "normals", **(extra or {})})
-
-
-def load_weights(path: str | os.PathLike) -> NormalNet:
-    """Load weights.safetensors and its weights.json beside it (never unpickles)."""
-    net, _ = training.load_weights(path, NormalNetConfig, NormalNet, kind="normals")
-    return net  # type: ignore[return-value]
 
 
 # ---- the loop -----------------------------------------------------------------------------------
@@ -131,19 +99,22 @@ def train_normals(dataset, run_dir: str | os.PathLike, config: TrainConfig, devi
     last epoch's metrics.
     """
     session = training.TrainingSession(run_dir, config, device, reporter)
+    # the rendering layer's map size; inference resizes a capture's map to it
+    envmap_height = int(dataset.config.envmap_height) if hasattr(dataset, "config") else DEFAULT_ENVMAP_HEIGHT
     device = session.device  # under torchrun on GPUs: this process's own
 
     def step(model: torch.nn.Module, index: int, global_step: int) -> tuple[Tensor, dict[str, float]]:
         sample = select_views(dataset[index], config.views_per_step,
                               torch.Generator().manual_seed(config.seed * 1_000_003 + global_step))
-        t = scene_tensors(sample, config.net, config.ior, device)
-        n1, n2 = model(t["inputs"], t["cost_volume"])
+        inputs, cost_volume = network_tensors(NormalInputs.from_sample(sample, config.ior, device), config.net)
+        t = normal_targets(sample, device)
+        n1, n2 = model(inputs, cost_volume)
         with torch.no_grad():
-            hull_n1, hull_n2 = t["inputs"][:, HULL_N1_CHANNELS], t["inputs"][:, HULL_N2_CHANNELS]
-            loss_hull = float(normal_loss(hull_n1, hull_n2, t))
+            loss_hull = float(normal_loss(inputs[:, HULL_N1_CHANNELS], inputs[:, HULL_N2_CHANNELS], t))
         return normal_loss(n1, n2, t), {"loss_hull": loss_hull}
 
     return session.fit(lambda: NormalNet(config.net), len(dataset), step,
                        weights_extra=lambda steps: {"kind": "normals", "steps": steps,
-                                                    "views": config.net.num_views},
+                                                    "views": config.net.num_views,
+                                                    "envmap_height": envmap_height},
                        labels={"loss_hull": "hull normals"}, max_steps=max_steps)

@@ -11,7 +11,6 @@ the ground truth's unit-sphere scale; per-scene values are kept so the worst sce
 from __future__ import annotations
 
 import dataclasses
-import json
 from collections.abc import Callable
 from pathlib import Path
 
@@ -20,13 +19,14 @@ import torch
 
 from ..errors import LookingGlassError
 from ..metrics import shape_metrics
-from ..normals.latent import LatentOptConfig, optimize_latent
-from ..normals.render_layer import prediction_error_maps
-from ..normals.train import load_weights, scene_tensors
+from ..hull import VisualHull
+from ..normals.latent import LatentOptConfig
+from ..normals.predict import NormalMaps
+from ..normals.stage import run_normal_stage
 from ..parallel import map_scenes
 from ..progress import Reporter
+from ..weights import load_normal_net, load_point_net
 from .stage import SurfaceConfig, surface_from_normals
-from .train import load_point_weights
 
 METRICS = ("cd", "cdn_mean", "cdn_med", "metro")
 
@@ -69,48 +69,39 @@ class _ShapeEvaluation:
                  latent: LatentOptConfig | None, surface: SurfaceConfig, device: str = "cpu"):
         self.dataset, self.strategies, self.latent, self.surface, self.device = (dataset, strategies, latent,
                                                                                  surface, device)
-        self.net = load_weights(weights).to(device) if weights is not None else None
-        self.point_net = load_point_weights(point_weights).to(device) if point_weights is not None else None
-        self.point_strategy = "RE"
-        if point_weights is not None:  # PNet is evaluated with the mapping it was trained on
-            self.point_strategy = json.loads(Path(point_weights).with_suffix(".json").read_text()).get("strategy",
-                                                                                                      "RE")
+        self.weights = load_normal_net(weights) if weights is not None else None
+        self.point_net = load_point_net(point_weights) if point_weights is not None else None
+        if self.weights is not None:
+            self.weights.net.to(device)
+        if self.point_net is not None:
+            self.point_net.net.to(device)
 
     def scene(self, i: int) -> dict:
-        """{"index": i, row: metrics} for test scene i."""
-        dataset, device, net, surface = self.dataset, self.device, self.net, self.surface
-        sample = dataset[i]
-        gt, hull = dataset.meshes(i)
-        t = scene_tensors(sample, net.cfg if net is not None else _plain_config(), 1.4723, device)
-        cams, mask = t["cameras"], t["mask"]
-        cams_cpu = cams.to("cpu")  # feature mapping and Poisson run on the CPU
-        frame = dataset.meta(i)["hull"]  # read once: every row's surface is made in this frame
-        record = {"index": i, "vh": shape_metrics(hull, gt)}
-        maps = {"vh+gt-normals": (t["n1"], None)}
-        if net is not None:
-            if self.latent is not None:
-                n1, n2, _ = optimize_latent(net, t["inputs"], t["cost_volume"], t["envmap"], t["image"], mask, cams,
-                                            self.latent)
-            else:
-                with torch.no_grad():
-                    n1, n2 = net(t["inputs"], t["cost_volume"])
-            maps["normals"] = (n1.detach(), n2.detach())
-        for name, (n1, n2) in maps.items():
-            n1_hw = n1.permute(0, 2, 3, 1)
-            if n2 is None:  # GT: its own rendering error is the renderer's residual, take it as 0
-                error, tir = torch.zeros(mask.shape, device=mask.device), sample["tir"].to(device).bool() & mask
-            else:
-                error, tir, _ = prediction_error_maps(t["envmap"], n1_hw, n2.permute(0, 2, 3, 1), cams, t["image"],
-                                                      mask)
-            runs = ([(f"normals-{s}", s, None) for s in self.strategies] if name == "normals"
-                    else [(name, self.strategies[0], None)])
-            if name == "normals" and self.point_net is not None:
-                runs.append((f"pnet-{self.point_strategy}", self.point_strategy, self.point_net))
-            maps_cpu = [x.cpu() for x in (n1_hw, error, tir, mask)]
-            for row, strategy, pnet in runs:
-                record[row] = _surface_metrics(hull, gt, frame, cams_cpu, *maps_cpu,
-                                               dataclasses.replace(surface, strategy=strategy), pnet)
+        """{"index": i, row: metrics} for test scene i, on `reconstruct`'s path: the scene as a
+        capture, its stored hull, `run_normal_stage`, `surface_from_normals`."""
+        capture, hull = self.dataset.capture(i), self.dataset.hull(i)
+        gt = self.dataset.meshes(i)[0]
+        sample = self.dataset[i]
+        record = {"index": i, "vh": shape_metrics(hull.mesh, gt)}
+        # Ground-truth first-hit normals at the dataset's resolution: what mapping + Poisson reach
+        # with perfect normals (their own rendering error is the layer's residual, taken as 0).
+        mask = sample["mask"].bool()
+        V, H, W = mask.shape
+        truth = NormalMaps(capture.cameras.with_resolution(W, H), sample["n1"].permute(0, 2, 3, 1).float(),
+                           sample["n2"].permute(0, 2, 3, 1).float(), torch.zeros(mask.shape), sample["tir"].bool() & mask,
+                           mask)
+        record["vh+gt-normals"] = _surface_metrics(hull, gt, truth, self._surface(self.strategies[0]), None)
+        if self.weights is not None:
+            maps = run_normal_stage(capture, hull, self.weights, self.latent, self.device).maps
+            for strategy in self.strategies:
+                record[f"normals-{strategy}"] = _surface_metrics(hull, gt, maps, self._surface(strategy), None)
+            if self.point_net is not None:  # PNet maps with the strategy it was trained on
+                record[f"pnet-{self.point_net.strategy}"] = _surface_metrics(hull, gt, maps, self.surface,
+                                                                            self.point_net)
         return record
+
+    def _surface(self, strategy: str) -> SurfaceConfig:
+        return dataclasses.replace(self.surface, strategy=strategy)
 
 
 def summarize(scenes: list[dict]) -> dict:
@@ -125,22 +116,14 @@ def summarize(scenes: list[dict]) -> dict:
     return {"rows": rows, "scenes": scenes}
 
 
-def _surface_metrics(hull, gt, frame: dict, cams, n1_hw, error, tir, mask, cfg: SurfaceConfig, point_net) -> dict:
-    """Shape metrics of the surface made from the maps, in the hull-normalized frame (PNet's;
-    `frame` is the scene meta's "hull" entry), measured in the ground truth's frame; a failed
-    Poisson is recorded, not hidden."""
-    center, scale = np.asarray(frame["center"], np.float64), float(frame["scale"])
+def _surface_metrics(hull: VisualHull, gt, maps: NormalMaps, cfg: SurfaceConfig, point_net) -> dict:
+    """Shape metrics of `surface_from_normals` against the ground truth; a failed Poisson is
+    recorded, not hidden."""
     try:
-        mesh, _ = surface_from_normals(hull, center, scale, cams, n1_hw, error, tir, mask, cfg, point_net)
+        mesh, _ = surface_from_normals(hull, maps, cfg, point_net)
         return shape_metrics(mesh, gt)
     except LookingGlassError as exc:
         return {"error": str(exc)}
-
-
-def _plain_config():
-    from ..normals.model import NormalNetConfig
-
-    return NormalNetConfig(use_error_map=False, use_cost_volume=False)
 
 
 def markdown_table(rows: dict) -> str:

@@ -11,6 +11,9 @@ occlusion tolerance mean the same for every capture; the mesh goes back to the c
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,10 +22,15 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from ..errors import LookingGlassError
+from ..hull import VisualHull
+from ..normals.predict import NormalMaps
 from ..physics.camera import Cameras
 from ..surface import close_narrow_tunnels, poisson_surface
 from .features import STRATEGIES, map_features, sample_hull_points
 from .model import PointNet
+
+if TYPE_CHECKING:
+    from ..weights import PointWeights
 
 
 @dataclass
@@ -146,17 +154,29 @@ def _poisson(oriented: OrientedPoints, config: SurfaceConfig, hull: trimesh.Trim
                            samples_per_node=config.samples_per_node, point_weight=config.point_weight)
 
 
-def surface_from_normals(hull_mesh: trimesh.Trimesh, center: np.ndarray, scale: float, cameras: Cameras,
-                         n1: torch.Tensor, error: torch.Tensor, tir: torch.Tensor, mask: torch.Tensor,
-                         config: SurfaceConfig, point_net: PointNet | None = None,
-                         ) -> tuple[trimesh.Trimesh, OrientedPoints]:
-    """Mesh and oriented points, both in the capture's frame, from a hull in the capture's frame,
-    its normalization ((p - center) / scale), and per-view maps as in `map_normals_to_hull`."""
-    unit_hull = hull_mesh.copy()
-    unit_hull.vertices = (np.asarray(hull_mesh.vertices) - center) / scale
-    unit_cams = cameras.transformed(torch.as_tensor(center), scale)
-    full = map_normals_to_hull(unit_hull, unit_cams, n1, error, tir, mask, config, point_net)
-    mesh = _poisson(full, config, unit_hull)
+def surface_from_normals(hull: VisualHull, maps: NormalMaps, config: SurfaceConfig,
+                         point_net: PointWeights | None = None) -> tuple[trimesh.Trimesh, OrientedPoints]:
+    """Mesh and oriented points, both in the hull's (capture) frame, from the hull and the
+    per-view normal maps (their cameras in the same frame). With PNet, its training strategy maps
+    the features (it learned on those); without, `config.strategy`. Feature mapping and Poisson
+    run on the CPU, PNet where its weights live.
+
+    Everything happens in the hull-normalized frame (max |p| = 1), PNet's training frame, so
+    Poisson's depth and the occlusion tolerance mean the same for every capture."""
+    maps = maps.to("cpu")
+    if point_net is not None:
+        config = dataclasses.replace(config, strategy=point_net.strategy)
+    unit_hull = hull.mesh_normalized()
+    full = map_normals_to_hull(unit_hull, hull.cameras_normalized(maps.cameras), maps.n1, maps.error, maps.tir,
+                               maps.mask, config, point_net.net if point_net is not None else None)
+    mesh = close_tunnels(_poisson(full, config, unit_hull), config)
+    mesh.vertices = hull.denormalize_points(mesh.vertices)
+    return mesh, OrientedPoints(hull.denormalize_points(full.points).astype(np.float32), full.normals, full.seen)
+
+
+def close_tunnels(mesh: trimesh.Trimesh, config: SurfaceConfig) -> trimesh.Trimesh:
+    """`mesh` (hull-normalized frame) with its tunnels narrower than `config.close_radius` Poisson
+    voxels filled, when that lowers its genus; what was done goes to mesh.metadata["closing"]."""
     handles = genus(mesh)
     if handles > 0 and config.close_radius > 0:
         # PNet's displacement can push facing sheets of points through each other, and screened
@@ -180,5 +200,4 @@ def surface_from_normals(hull_mesh: trimesh.Trimesh, center: np.ndarray, scale: 
                 mesh = closed
             mesh.metadata["closing"] = dict(closed.metadata["closing"], genus_before=handles,
                                             genus_after=min(after, handles), applied=after < handles)
-    mesh.vertices = np.asarray(mesh.vertices) * scale + center
-    return mesh, OrientedPoints((full.points * scale + center).astype(np.float32), full.normals, full.seen)
+    return mesh

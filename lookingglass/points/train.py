@@ -54,11 +54,14 @@ from torch import Tensor
 from .. import training
 from ..errors import LookingGlassError
 from ..fileio import sha256_file, write_atomic
+from ..physics.optics import IOR_GLASS
+from ..hull import VisualHull
+from ..normals.inputs import NormalInputs
 from ..normals.model import NormalNet
-from ..normals.render_layer import prediction_error_maps
-from ..normals.train import load_weights, scene_tensors
+from ..normals.predict import predict_normals
 from ..progress import Reporter
 from ..threads import torch_threads
+from ..weights import load_normal_net
 from .features import FEATURE_COLUMNS, NUM_FEATURES, STRATEGIES, map_features, sample_hull_points
 from .losses import LOSSES, PointLoss, view_targets
 from .model import PRESETS, PointNet, PointNetConfig
@@ -73,8 +76,6 @@ __all__ = [
     "load_scene_arrays",
     "point_loss",
     "train_points",
-    "save_point_weights",
-    "load_point_weights",
 ]
 
 # The cached target arrays each loss reads (beside "features").
@@ -102,7 +103,7 @@ class PointTrainConfig:
     checkpoint_every: int = 50
     seed: int = 0
     max_scenes: int = 0
-    ior: float = 1.4723
+    ior: float = IOR_GLASS
     init: str = ""  # weights to fine-tune from ("" : random start)
 
     def __post_init__(self) -> None:
@@ -131,11 +132,6 @@ def point_train_preset(name: str) -> PointTrainConfig:
 
 
 # ---- one scene -> cached arrays ---------------------------------------------------------------------
-def _normalized(mesh: trimesh.Trimesh, center: np.ndarray, scale: float) -> trimesh.Trimesh:
-    return trimesh.Trimesh((np.asarray(mesh.vertices, np.float64) - center) / scale, np.asarray(mesh.faces),
-                           process=False, validate=False)
-
-
 def _closest_points(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The closest surface point of `mesh` to each of `points` (N, 3) and the smooth
     (vertex-interpolated, as RayCaster's hits) unit normal there: (N, 3), (N, 3) float32."""
@@ -147,31 +143,24 @@ def _closest_points(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarr
     return closest.astype(np.float32), normal.astype(np.float32)
 
 
-def scene_point_data(normal_net: NormalNet, sample: dict, gt_mesh: trimesh.Trimesh, hull_mesh: trimesh.Trimesh,
-                     center, scale: float, config: PointTrainConfig, seed: int,
-                     device: str = "cpu") -> dict[str, np.ndarray]:
+def scene_point_data(normal_net: NormalNet, sample: dict, gt_mesh: trimesh.Trimesh, hull: VisualHull,
+                     config: PointTrainConfig, seed: int, device: str = "cpu") -> dict[str, np.ndarray]:
     """PNet's input features and the loss's targets for one training scene.
 
     normal_net: the trained normal net (eval mode; a plain forward, no latent optimization).
     sample: the dataset item (data/torch_dataset.py keys; views and resolution as the net's).
-    gt_mesh, hull_mesh: the ground truth and the visual hull, dataset world frame. center (3,),
-    scale: the hull normalization, p_n = (p - center) / scale. seed: point sampling.
+    gt_mesh: the ground truth, dataset world frame; hull: the scene's visual hull with its
+    normalization (`dataset.hull(i)`). seed: point sampling.
     Returns float32 numpy arrays (bool for view_valid) in the hull-normalized frame: "features"
     (N, NUM_FEATURES) and TARGET_KEYS[config.loss] (see the module docstring).
     """
-    center = np.asarray(center, np.float64)
-    scale = float(scale)
-    t = scene_tensors(sample, normal_net.cfg, config.ior, device)
-    with torch.no_grad():
-        n1, n2 = normal_net(t["inputs"], t["cost_volume"])
-        n1_hw, n2_hw = n1.permute(0, 2, 3, 1), n2.permute(0, 2, 3, 1)  # (V, H, W, 3) camera frame
-        mask = t["mask"]
-        error, tir, _ = prediction_error_maps(t["envmap"], n1_hw, n2_hw, t["cameras"], t["image"], mask, config.ior)
-    hull = _normalized(hull_mesh, center, scale)
-    gt = _normalized(gt_mesh, center, scale)
-    cams = t["cameras"].to(device="cpu").transformed(torch.as_tensor(center), scale)
-    points, hull_normals = sample_hull_points(hull, config.net.num_points, seed)
-    mapped = map_features(points, hull_normals, hull, cams, n1_hw.cpu(), error.cpu(), tir.cpu(), mask.cpu(),
+    maps = predict_normals(normal_net, NormalInputs.from_sample(sample, config.ior, device)).to("cpu")
+    unit_hull = hull.mesh_normalized()
+    gt = trimesh.Trimesh(hull.normalize_points(gt_mesh.vertices), np.asarray(gt_mesh.faces), process=False,
+                         validate=False)
+    cams = hull.cameras_normalized(maps.cameras)
+    points, hull_normals = sample_hull_points(unit_hull, config.net.num_points, seed)
+    mapped = map_features(points, hull_normals, unit_hull, cams, maps.n1, maps.error, maps.tir, maps.mask,
                           config.strategy)
     out = {"features": mapped["features"].numpy().astype(np.float32)}
     if config.loss == "chamfer":
@@ -239,9 +228,7 @@ def prepare_features(dataset, run_dir: str | os.PathLike, config: PointTrainConf
         if (V, H, W) != (cfg.num_views, cfg.height, cfg.width):
             raise LookingGlassError(f"scene {_scene_name(dataset, i)} has {V} views of {W}x{H}, the normal net takes "
                                     f"{cfg.num_views} of {cfg.width}x{cfg.height}")
-        gt, hull = dataset.meshes(i)
-        frame = dataset.meta(i)["hull"]
-        arrays = scene_point_data(normal_net, sample, gt, hull, frame["center"], frame["scale"], config,
+        arrays = scene_point_data(normal_net, sample, dataset.meshes(i)[0], dataset.hull(i), config,
                                   seed=config.seed * 1_000_003 + i, device=device)
         write_atomic(feature_path(run_dir, dataset, i), lambda tmp: np.savez(tmp, **arrays))
     return {"made": todo, "skipped": len(mine) - len(todo), "seconds": round(time.perf_counter() - start, 2)}
@@ -266,19 +253,6 @@ def point_loss(name: str, points: Tensor, normals: Tensor, targets: dict[str, Te
                 view_normals=targets["view_normals"], view_valid=targets["view_valid"])
 
 
-# ---- weights ----------------------------------------------------------------------------------------
-def save_point_weights(run_dir: str | os.PathLike, net: PointNet, extra: dict | None = None) -> Path:
-    """RUN_DIR/weights.safetensors + weights.json ({"net": PointNetConfig, "kind": "points", ...})."""
-    return training.save_weights(Path(run_dir), net, {"kind": "points", **(extra or {})})
-
-
-def load_point_weights(path: str | os.PathLike) -> PointNet:
-    """PNet from weights.safetensors and the weights.json beside it (never unpickles); eval mode,
-    CPU. Refuses normal-net weights."""
-    net, _ = training.load_weights(path, PointNetConfig, PointNet, kind="points")
-    return net  # type: ignore[return-value]
-
-
 # ---- training ---------------------------------------------------------------------------------------
 def train_points(dataset, run_dir: str | os.PathLike, config: PointTrainConfig, normals: str | os.PathLike,
                  device: str = "cpu", reporter: Reporter | None = None, max_steps: int | None = None,
@@ -297,7 +271,7 @@ def train_points(dataset, run_dir: str | os.PathLike, config: PointTrainConfig, 
     session = training.TrainingSession(run_dir, config, device, reporter)  # refuses another config first
     device = session.device  # under torchrun on GPUs: this process's own
     with torch_threads(threads if not device.startswith("cuda") else -1):
-        normal_net = load_weights(normals).to(device)
+        normal_net = load_normal_net(normals).net.to(device)
         digest = _check_source(run_dir, normals, normal_net.cfg.num_views, session.rank)
         summary = prepare_features(dataset, run_dir, config, normal_net, device, session.reporter, session.rank,
                                    session.world)

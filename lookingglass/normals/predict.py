@@ -1,0 +1,71 @@
+"""Normal maps from the network, and their re-rendering: the one prediction path.
+
+`reconstruct`, `eval-normals`, `eval-shapes` and the point network's training features all call
+`predict_normals`; `render_normals` scores any normals (the hull's, the ground truth's) the same
+way, so every row of every table is measured by the same rendering layer.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..physics.camera import Cameras
+from .inputs import NormalInputs, network_tensors
+from .latent import LatentOptConfig, optimize_latent
+from .model import NormalNet
+from .render_layer import comparable, prediction_error_maps
+
+
+@dataclass
+class NormalMaps:
+    """Per-view normals at the network's resolution and how well they explain the photos.
+
+    cameras: the views at H x W, the inputs' frame. n1, n2 (V,H,W,3) camera-frame normals at the
+    first and second hit; error (V,H,W) per-pixel squared re-rendering error (mean over RGB, 0 off
+    the mask); tir, mask (V,H,W) bool; rendered (V,H,W,3) the re-rendering clipped like the photo
+    (None where the normals were not rendered, e.g. ground truth handed to feature mapping)."""
+
+    cameras: Cameras
+    n1: Tensor
+    n2: Tensor
+    error: Tensor
+    tir: Tensor
+    mask: Tensor
+    rendered: Tensor | None = None
+
+    def to(self, device) -> NormalMaps:
+        moved = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        moved = {k: (v.to(device) if v is not None else None) for k, v in moved.items()}
+        return NormalMaps(**moved)
+
+    def render_error(self) -> float:
+        """Mean squared re-rendering error over the masks' pixels and channels."""
+        return float(self.error[self.mask].sum()) / max(int(self.mask.sum()), 1)
+
+
+def render_normals(x: NormalInputs, n1: Tensor, n2: Tensor) -> NormalMaps:
+    """Render normals n1, n2 (V,H,W,3) camera frame under the inputs' environment and compare
+    with the inputs' photos."""
+    with torch.no_grad():
+        error, tir, out = prediction_error_maps(x.envmap, n1, n2, x.cameras, x.image, x.mask, x.ior)
+    return NormalMaps(x.cameras, n1, n2, error, tir, x.mask, comparable(out.image))
+
+
+def network_normals(net: NormalNet, x: NormalInputs, latent: LatentOptConfig | None = None) -> tuple[Tensor, Tensor]:
+    """(n1, n2) (V,H,W,3) camera frame from NNet, latent-optimized when `latent` has steps."""
+    inputs, cost_volume = network_tensors(x, net.cfg)
+    if latent is not None and latent.iterations_n2 + latent.iterations_both > 0:
+        n1, n2, _ = optimize_latent(net, inputs, cost_volume, x.envmap, x.image, x.mask, x.cameras, latent)
+    else:
+        with torch.no_grad():
+            n1, n2 = net(inputs, cost_volume)
+    return n1.detach().permute(0, 2, 3, 1), n2.detach().permute(0, 2, 3, 1)
+
+
+def predict_normals(net: NormalNet, x: NormalInputs, latent: LatentOptConfig | None = None) -> NormalMaps:
+    """NNet's normals for the inputs (latent-optimized when `latent` has steps), re-rendered."""
+    return render_normals(x, *network_normals(net, x, latent))
