@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import trimesh  # noqa: E402
 
-from lookingglass.data.rigs import paper_rig  # noqa: E402
+from lookingglass.data.rigs import PAPER_FOV_X_DEG, PAPER_IMAGE_SIZE, paper_rig  # noqa: E402
 from lookingglass.data.shapes import random_shape  # noqa: E402
 from lookingglass.hull import HullConfig, carve_visual_hull  # noqa: E402
 from lookingglass.metrics import shape_metrics  # noqa: E402
@@ -118,7 +118,7 @@ def sphere_many_views(views: int = 60) -> dict:
     up = np.array([0.0, 1.0, 0.0]) + rng.uniform(-0.1, 0.1, (views, 3))
     from lookingglass.physics.camera import Cameras
 
-    cams = Cameras.look_at(3 * dirs, np.zeros((views, 3)), up, 63.4, 480, 360)
+    cams = Cameras.look_at(3 * dirs, np.zeros((views, 3)), up, PAPER_FOV_X_DEG, *PAPER_IMAGE_SIZE)
     gt = trimesh.creation.icosphere(6, 1.0)
     masks = object_masks(gt, cams)
     out = {}

@@ -38,6 +38,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 from lookingglass.capture.images import read_envmap  # noqa: E402
+from lookingglass.data.envmaps import default_envmap_folder  # noqa: E402
+from lookingglass.data.rigs import PAPER_FOV_X_DEG, paper_rig  # noqa: E402
 from lookingglass.physics.camera import Cameras  # noqa: E402
 from lookingglass.physics.environment import EnvironmentMap  # noqa: E402
 from lookingglass.physics.optics import IOR_AIR, IOR_GLASS  # noqa: E402
@@ -46,22 +48,7 @@ from lookingglass.render.testshapes import radial_blob  # noqa: E402
 from lookingglass.render.tracer import (RenderConfig, _dielectric, _Surface, render_views,  # noqa: E402
                                         trace_two_bounce)
 
-SHARED = ROOT.parent / "shared"
-ENV = SHARED / "envmaps" / "kiara_1_dawn_1k.hdr"
-
-
-def paper_rig(width: int = 480, height: int = 360, seed: int = 0) -> Cameras:
-    """DESIGN.md's 10-view rig: distance 3, polar 50/100 +- 10 deg, azimuth 0..288 +- 20 deg."""
-    rng = np.random.default_rng(seed)
-    origins, targets, ups = [], [], []
-    for theta in (50, 100):
-        for phi in (0, 72, 144, 216, 288):
-            t = math.radians(theta + rng.uniform(-10, 10))
-            p = math.radians(phi + rng.uniform(-20, 20))
-            origins.append([3 * math.sin(t) * math.sin(p), 3 * math.cos(t), 3 * math.sin(t) * math.cos(p)])
-            targets.append(rng.uniform(-0.05, 0.05, 3))
-            ups.append(np.array([0.0, 1.0, 0.0]) + rng.uniform(-0.1, 0.1, 3))
-    return Cameras.look_at(origins, targets, ups, 63.4, width, height)
+ENV = default_envmap_folder() / "kiara_1_dawn_1k.hdr"
 
 
 def load_env(height: int) -> tuple[np.ndarray, EnvironmentMap]:
@@ -112,7 +99,7 @@ def bench_scene(name: str, mesh: trimesh.Trimesh, env: EnvironmentMap, cams: Cam
 def bench_mitsuba(mesh: trimesh.Trimesh, env_np: np.ndarray, env: EnvironmentMap, quick: bool) -> dict:
     import mitsuba_ref
 
-    cams = Cameras.look_at([[1.2, 1.4, 2.4]], [[0.02, -0.03, 0.01]], [[0.0, 1.0, 0.0]], 63.4, 320, 240)
+    cams = Cameras.look_at([[1.2, 1.4, 2.4]], [[0.02, -0.03, 0.01]], [[0.0, 1.0, 0.0]], PAPER_FOV_X_DEG, 320, 240)
     cfg = RenderConfig()
     mi_depth = cfg.max_depth + 1  # Mitsuba counts the emitter vertex
     ref = render_views(mesh, env, cams, RenderConfig(samples_per_axis=32, seed=123)).image.numpy()
@@ -148,7 +135,7 @@ def main() -> None:
     args = ap.parse_args()
     repeats = 2 if args.quick else 3
     env_np, env = load_env(256)  # DESIGN.md: E at 512 x 256
-    cams = paper_rig()
+    cams = paper_rig(10, rng=0)  # DESIGN.md's 10-view rig at 480 x 360, seed 0
     shapes = {"icosphere (subdiv 5)": trimesh.creation.icosphere(subdivisions=5),
               "radial blob (subdiv 6, non-convex)": radial_blob(0, subdivisions=6)}
     load = os.getloadavg()[0]

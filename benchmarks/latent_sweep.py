@@ -3,7 +3,7 @@
 For the first test scenes of a dataset, runs the network and then latent optimization with
 (k, k) steps (N2 with N1 held, then both) for several k, and prints the N1/N2 median angle error,
 render error and seconds per scene for each k: the knee of this curve sets
-`LatentOptConfig`'s defaults (docs/results.md keeps the table).
+`LatentOptConfig`'s defaults (docs/history.md keeps the tables).
 """
 
 from __future__ import annotations

@@ -31,7 +31,7 @@ def test_latent_optimization_lowers_render_error_and_keeps_weights(residual):
     x = network_inputs(image, mask, hull1, hull2, torch.zeros_like(image), torch.zeros_like(mask))
     _, _, history = optimize_latent(net, x, None, env, image, mask, cams,
                                     LatentOptConfig(iterations_n2=20, iterations_both=80, lr=2e-2))
-    # An untrained decoder spans few shapes; a trained one moves further (docs/results.md).
+    # An untrained decoder spans few shapes; a trained one moves further (docs/history.md).
     assert history[-1] < 0.85 * history[0], history[::10]
     assert all(torch.equal(a, b) for a, b in zip(before, net.parameters()))
 

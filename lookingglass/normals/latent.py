@@ -18,7 +18,7 @@ from .render_layer import comparable, render_layer
 class LatentOptConfig:
     """iterations_n2: steps on N2 with N1 held by an identity loss of weight `identity_weight`;
     iterations_both: steps on both. The paper uses 500 + more on a GPU. On this CPU each step costs
-    ~0.9 s for 10 views at 128x96, and the sweep in docs/results.md (benchmarks/latent_sweep.py)
+    ~0.9 s for 10 views at 128x96, and the sweep in docs/history.md (benchmarks/latent_sweep.py)
     found the normals' angle errors flat in the steps (10.51 -> 10.48 deg N1 median from 0 to
     40 + 40) while the render error falls slowly (7.8 -> 6.8e-2): 10 + 10 keeps the stage near
     the 20 s budget."""

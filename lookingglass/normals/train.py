@@ -54,7 +54,7 @@ def train_preset(name: str, views: int = 10) -> TrainConfig:
         # 8 epochs over ~600 scenes, 4 random views a step (more scenes per second than all 10), a
         # higher rate halved every 3 epochs: ~80 minutes under torchrun on 2 cores (~10 min an
         # epoch). The earlier 2 epochs, halved after 1, stopped while the loss still fell: the same
-        # data for 8 epochs took the test N1 median from 0.88 to 0.73 x the hull's (docs/results.md).
+        # data for 8 epochs took the test N1 median from 0.88 to 0.73 x the hull's (docs/history.md).
         return TrainConfig(net=net, epochs=8, lr=4e-4, lr_halve_epochs=3, views_per_step=4)
     return TrainConfig(net=net)
 

@@ -39,7 +39,7 @@ Ours, not the paper's: silhouette-cone counts (columns "silhouette"). Every hull
 the cone of at least one view's silhouette; where it also lies near the cones of other views, the
 hull is tight there (measured on our test split: hull points that leave the silhouette in >= 2
 views when pushed out by 0.02 lie about half as far from the true surface as those that leave it
-in one; docs/results.md, "What limits the shape"). Per offset eps of SILHOUETTE_OFFSETS the column
+in one; docs/history.md, "What limits the shape"). Per offset eps of SILHOUETTE_OFFSETS the column
 counts the views in which p + eps * (hull normal) falls outside the object mask, with the mask read
 bilinearly (so the count moves smoothly with the point) and a projection behind the camera or off
 the image counting as outside. Nets trained on the paper's 12 columns read only those (PNet takes
