@@ -17,8 +17,8 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
                   help="Reconstruct transparent objects from a few photos under a known environment map.")
 
 
-SURFACE_POINTS_HELP = ("Points on the hull for the surface (default 40 000; more keeps narrower slits and "
-                       "takes longer).")
+SURFACE_POINTS_HELP = ("Points on the hull for the surface (SurfaceConfig.points; more keeps narrower slits "
+                       "and takes longer).")
 WORKERS_HELP = ("Scenes evaluated at once on the CPU, one process each (0: one per core; with a GPU, one "
                 "process).")
 
@@ -33,37 +33,41 @@ def _surface_points(value: Optional[int]) -> Optional[int]:
 def reconstruct(
     scene_dir: Path = typer.Argument(..., help="Scene folder with scene.json, images, masks and envmap."),
     out: Path = typer.Option(..., "--out", help="Output folder (must be empty unless --force)."),
-    preset: str = typer.Option("cpu", help="Configuration preset: cpu or paper."),
-    hull_resolution: Optional[int] = typer.Option(None, help="Voxels along the longest side of the hull box."),
+    preset: Optional[str] = typer.Option(None, help="Configuration preset: cpu (the default) or paper (the "
+                                                    "paper's 500 + 500 latent steps, for a GPU)."),
+    config: Optional[Path] = typer.Option(None, "--config", help="Re-run a saved configuration: an earlier run's "
+                                                                 "report.json (or a config JSON); the options "
+                                                                 "below override it."),
+    hull_resolution: Optional[int] = typer.Option(None, help="Voxels along the longest side of the hull box "
+                                                             "(HullConfig.resolution)."),
     surface_points: Optional[int] = typer.Option(None, help=SURFACE_POINTS_HELP),
-    device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
-    stop_after: str = typer.Option("surface", help="Last stage to run: visual_hull, normals or surface."),
+    device: Optional[str] = typer.Option(None, help="cpu, cuda, cuda:N or auto (the default)."),
+    stop_after: Optional[str] = typer.Option(None, help="Last stage to run: visual_hull, normals or surface (the "
+                                                        "default)."),
     weights: Optional[Path] = typer.Option(None, help="Normal-network weights (default: the shipped ones)."),
-    views: int = typer.Option(0, help="Use the shipped weights trained for this view count (5, 10, 20; the "
-                                      "nearest that ships); 0: the capture's view count."),
+    views: Optional[int] = typer.Option(None, help="Use the shipped weights trained for this view count (5, 10, "
+                                                   "20; the nearest that ships); 0: the capture's view count."),
     force: bool = typer.Option(False, "--force", help="Overwrite a non-empty output folder."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Reconstruct the object's surface; writes mesh.ply, visual_hull.ply, points.ply, normals/ and report.json."""
-    from .config import preset as make_preset
+    import dataclasses
+
+    from .config import PipelineConfig, preset as make_preset
     from .pipeline import reconstruct as run
     from .progress import Reporter
 
-    config = make_preset(preset)
-    config.device, config.stop_after = device, stop_after
-    if weights is not None:
-        config.normals.weights = str(weights)
-    if views < 0:
-        raise LookingGlassError(f"--views must be 5, 10, 20 or 0 (the capture's count), got {views}")
-    config.normals.views = views
-    if hull_resolution is not None:
-        if not 16 <= hull_resolution <= 1024:
-            raise LookingGlassError(f"--hull-resolution must be in [16, 1024], got {hull_resolution}")
-        config.hull.resolution = hull_resolution
-    if _surface_points(surface_points) is not None:
-        config.surface.points = surface_points
+    if preset is not None and config is not None:
+        raise LookingGlassError("give --preset or --config, not both")
+    base = PipelineConfig.from_json(config) if config is not None else make_preset(preset or "cpu")
+    if hull_resolution is not None and not 16 <= hull_resolution <= 1024:
+        raise LookingGlassError(f"--hull-resolution must be in [16, 1024], got {hull_resolution}")
+    normals = _with_overrides(base.normals, weights=str(weights) if weights is not None else None, views=views)
+    resolved = _with_overrides(base, device=device, stop_after=stop_after, normals=normals,
+                               hull=_with_overrides(base.hull, resolution=hull_resolution),
+                               surface=_with_overrides(base.surface, points=_surface_points(surface_points)))
     reporter = Reporter(quiet=quiet)
-    report = run(scene_dir, out, config, force=force, reporter=reporter)
+    report = run(scene_dir, out, dataclasses.replace(resolved), force=force, reporter=reporter)
     reporter.info(f"wrote {out / 'mesh.ply'} ({report['total_seconds']:.1f} s)")
 
 

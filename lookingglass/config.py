@@ -10,30 +10,62 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from .configio import config_from_dict, config_to_dict  # noqa: F401 (re-exported)
-from .errors import LookingGlassError
+from .errors import ConfigError, LookingGlassError
 from .hull import HullConfig
+from .normals.latent import LatentOptConfig
 from .normals.stage import NormalStageConfig
 from .points.stage import SurfaceConfig
 
 
+STAGES = ("visual_hull", "normals", "surface")
+
+
 @dataclass
 class PipelineConfig:
-    """Everything `reconstruct` needs. device: "cpu", "cuda", "cuda:1", ... ("auto" = cuda if present)."""
+    """Everything `reconstruct` needs. device: "cpu", "cuda", "cuda:1", ... ("auto" = cuda if
+    present; resolved once, and every stage, the hull's carving included, runs there).
+    stop_after: the last of STAGES to run."""
 
     hull: HullConfig = field(default_factory=HullConfig)
     normals: NormalStageConfig = field(default_factory=NormalStageConfig)
     surface: SurfaceConfig = field(default_factory=SurfaceConfig)
-    stop_after: str = "surface"  # visual_hull, normals or surface
+    stop_after: str = "surface"
     device: str = "auto"
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        if self.stop_after not in STAGES:
+            raise ConfigError(f"stop_after must be one of {', '.join(STAGES)}, got {self.stop_after!r}")
+        if not (self.device in ("auto", "cpu", "cuda") or self.device.startswith("cuda:")):
+            raise ConfigError(f"device must be cpu, cuda, cuda:N or auto, got {self.device!r}")
+
+    @classmethod
+    def from_json(cls, path) -> PipelineConfig:
+        """The config of a finished run: its report.json (the "config" entry) or a config JSON."""
+        import json
+        from pathlib import Path
+
+        try:
+            data = json.loads(Path(path).read_text())
+        except (OSError, ValueError) as exc:
+            raise LookingGlassError(f"cannot read the config ({exc})", path) from None
+        if isinstance(data, dict) and "config" in data:
+            data = data["config"]
+        try:
+            return config_from_dict(cls, data, where=str(path))
+        except (TypeError, ValueError) as exc:
+            raise LookingGlassError(f"invalid config ({exc})", path) from None
+
 
 def _paper() -> PipelineConfig:
-    return PipelineConfig(hull=HullConfig(resolution=128))
+    """The paper's post-processing: 500 latent-optimization steps on N2, then 500 on both (meant
+    for a GPU: ~0.9 s a step for 10 views on this CPU)."""
+    return PipelineConfig(normals=NormalStageConfig(latent=LatentOptConfig(iterations_n2=500, iterations_both=500)))
 
 
 def _cpu() -> PipelineConfig:
-    return PipelineConfig(hull=HullConfig(resolution=128))
+    """The defaults: 10 + 10 latent steps (the angles barely move with more; docs/results.md)."""
+    return PipelineConfig()
 
 
 PRESETS = {"paper": _paper, "cpu": _cpu}

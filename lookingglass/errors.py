@@ -19,3 +19,8 @@ class LookingGlassWarning(UserWarning):
     Emitted with `warnings.warn(LookingGlassWarning(message))`; the message names the file and
     the oddity, like LookingGlassError's.
     """
+
+
+class ConfigError(LookingGlassError, ValueError):
+    """A configuration value out of its range: raised by the config dataclasses' own checks, so a
+    flag, a preset and a loaded config JSON are all refused the same way (one line at the CLI)."""

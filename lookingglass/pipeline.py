@@ -23,7 +23,7 @@ import trimesh
 
 from . import __version__
 from .capture.scene import load_capture
-from .config import PipelineConfig, config_to_dict, resolve_device
+from .config import STAGES, PipelineConfig, config_to_dict, resolve_device
 from .errors import LookingGlassError
 from .fileio import write_atomic, write_json
 from .hull import VisualHull, carve_visual_hull
@@ -32,7 +32,6 @@ from .points.stage import surface_from_normals
 from .progress import Reporter, peak_memory_mb
 from .weights import load_normal_net, load_point_net, shipped_weights
 
-STAGES = ("visual_hull", "normals", "surface")
 
 
 def versions() -> dict:
@@ -123,13 +122,15 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
                 reporter: Reporter | None = None) -> dict:
     """Reconstruct the object in the scene folder `scene_dir`; returns the report dict."""
     config = config or PipelineConfig()
-    if config.stop_after not in STAGES:
-        raise LookingGlassError(f"--stop-after must be one of {', '.join(STAGES)}, got {config.stop_after!r}")
+    config = dataclasses.replace(config)  # validated (a config edited after it was made is checked here)
     wanted = STAGES[:STAGES.index(config.stop_after) + 1]
     reporter = reporter or Reporter(quiet=True)
     scene_dir, out_dir = Path(scene_dir), Path(out_dir)
     start = time.perf_counter()
+    # the device is resolved once, for every stage (the hull carves where the networks run), and
+    # saved resolved in report.json's config
     device = resolve_device(config.device)
+    config = dataclasses.replace(config, device=device, hull=dataclasses.replace(config.hull, device=device))
     if scene_dir.resolve() == out_dir.resolve():
         raise LookingGlassError("output folder must differ from the scene folder", out_dir)
     prepare_output_dir(out_dir, force)
@@ -141,8 +142,7 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
             rec.update(views=capture.num_views, image_size=[capture.width, capture.height])
 
         with reporter.stage("visual_hull", "visual hull") as rec:
-            # the device is resolved once, for every stage: the hull carves where the networks run
-            hull = carve_visual_hull(capture.masks, capture.cameras, dataclasses.replace(config.hull, device=device))
+            hull = carve_visual_hull(capture.masks, capture.cameras, config.hull)
             write_mesh(out_dir / "visual_hull.ply", hull.mesh)
             rec.update(mesh=mesh_summary(hull.mesh), voxel_size=float(hull.voxel_size),
                        timings={k: round(float(v), 3) for k, v in hull.timings.items()})

@@ -195,3 +195,23 @@ def test_shipped_weights_for_other_view_counts():
         assert shipped_weights(asked)[1] in (5, 10, 20)
     points, point_views = shipped_weights(10, "points")
     assert points is not None and points.name == "points_10views.safetensors" and point_views == 10
+
+
+def test_reconstruct_reruns_a_saved_config_and_refuses_bad_values(rendered_scene, tmp_path):
+    """`--config OUT/report.json` re-runs a finished run's resolved config (options override it);
+    values out of range are refused by the configs themselves, before anything is loaded."""
+    root = rendered_scene
+    run("reconstruct", root / "scene", "--out", tmp_path / "a", "--stop-after", "visual_hull", "--hull-resolution", 64,
+        "--quiet")
+    first = json.loads((tmp_path / "a" / "report.json").read_text())
+    run("reconstruct", root / "scene", "--out", tmp_path / "b", "--config", tmp_path / "a" / "report.json", "--quiet")
+    again = json.loads((tmp_path / "b" / "report.json").read_text())
+    assert again["config"] == first["config"] and again["stages_run"] == ["visual_hull"]
+    assert again["config"]["hull"]["resolution"] == 64 and again["config"]["hull"]["device"] == again["device"]
+    assert again["stages"][1]["mesh"] == first["stages"][1]["mesh"]  # the same hull, to the vertex count
+    for bad, said in [(["--stop-after", "bogus"], "stop_after must be one of"), (["--views", "-1"], "views must be"),
+                      (["--device", "tpu"], "device must be"),
+                      (["--config", tmp_path / "a" / "mesh.ply"], "cannot read the config")]:
+        proc = run("reconstruct", root / "scene", "--out", tmp_path / "c", *bad, ok=False)
+        assert proc.returncode == 2 and said in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+        assert not (tmp_path / "c").exists()

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from ..capture.images import write_image
+from ..errors import ConfigError
 from ..fileio import write_atomic
 from ..hull import VisualHull
 from ..viz import normal_map_rgb, tonemap
@@ -37,7 +38,7 @@ class NormalStageConfig:
 
     def __post_init__(self) -> None:
         if self.views < 0:
-            raise ValueError(f"views must be 0 (the capture's count) or a view count, got {self.views}")
+            raise ConfigError(f"views must be 0 (the capture's count) or a view count, got {self.views}")
 
 
 @dataclass

@@ -21,7 +21,7 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from ..errors import LookingGlassError
+from ..errors import ConfigError, LookingGlassError
 from ..hull import VisualHull
 from ..normals.predict import NormalMaps
 from ..physics.camera import Cameras
@@ -75,11 +75,11 @@ class SurfaceConfig:
 
     def __post_init__(self) -> None:
         if self.strategy.upper() not in STRATEGIES:
-            raise ValueError(f"strategy must be one of {STRATEGIES}, got {self.strategy!r}")
+            raise ConfigError(f"strategy must be one of {STRATEGIES}, got {self.strategy!r}")
         if self.points < 1:
-            raise ValueError(f"points must be positive, got {self.points}")
+            raise ConfigError(f"points must be positive, got {self.points}")
         if self.close_radius < 0:
-            raise ValueError(f"close_radius must be 0 or more, got {self.close_radius}")
+            raise ConfigError(f"close_radius must be 0 or more, got {self.close_radius}")
 
 
 @dataclass
