@@ -34,6 +34,8 @@ import torch
 import trimesh
 
 from .errors import LookingGlassError
+from .meshes import largest_component, orient_outward, require_closed_and_oriented, taubin_smooth
+from .meshes import subdivide_ls3_loop as _ls3_loop  # the name hull's tests import
 from .threads import torch_threads
 from .physics.camera import Cameras
 
@@ -383,106 +385,6 @@ def _find_box(carver: _Carver, masks: np.ndarray, cameras: Cameras,
     return lo, hi
 
 
-# ---------------------------------------------------------------------------------------------
-# Mesh
-# ---------------------------------------------------------------------------------------------
-
-def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """Volume enclosed by a closed triangle mesh; positive when its faces wind outward."""
-    a, b, c = (vertices[faces[:, i]] for i in range(3))
-    return float(np.einsum("ij,ij->", a, np.cross(b, c))) / 6.0
-
-
-def _largest_component(vertices: np.ndarray, faces: np.ndarray,
-                       min_volume: float) -> tuple[np.ndarray, np.ndarray, int]:
-    """Keep the connected component with the most faces.
-
-    vertices (N, 3), faces (F, 3), closed and outward. Returns the kept vertices and faces and the
-    number of dropped pieces larger than `min_volume` (pieces under one voxel are specks where the
-    field grazes zero at a single sample, below the carving's resolution: dropped silently).
-    """
-    import scipy.sparse
-    import scipy.sparse.csgraph
-
-    n = len(vertices)
-    # Vertex graph through face edges (a->b, b->c); connectivity is all that matters.
-    rows = np.concatenate([faces[:, 0], faces[:, 1]])
-    cols = np.concatenate([faces[:, 1], faces[:, 2]])
-    g = scipy.sparse.coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(n, n))
-    ncomp, label = scipy.sparse.csgraph.connected_components(g, directed=False)
-    if ncomp <= 1:
-        return vertices, faces, 0
-    face_label = label[faces[:, 0]]
-    counts = np.bincount(face_label, minlength=ncomp)
-    keep_label = int(np.argmax(counts))
-    a, b, c = (vertices[faces[:, i]] for i in range(3))
-    piece_volume = np.bincount(face_label, weights=np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0,
-                               minlength=ncomp)
-    big = (counts > 0) & (np.abs(piece_volume) > min_volume)
-    big[keep_label] = False
-    dropped = int(big.sum())
-    faces = faces[face_label == keep_label]
-    used = np.zeros(n, bool)
-    used[faces.ravel()] = True
-    remap = np.cumsum(used) - 1
-    return vertices[used], remap[faces], dropped
-
-
-def _taubin(vertices: np.ndarray, faces: np.ndarray, iterations: int) -> np.ndarray:
-    """Taubin lambda/mu smoothing (no shrinkage), uniform weights. vertices (N, 3) float64."""
-    import scipy.sparse
-
-    n = len(vertices)
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.concatenate([e, e[:, ::-1]])
-    A = scipy.sparse.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
-    A.data[:] = 1.0  # duplicates (each interior edge appears twice) -> 1
-    deg = np.asarray(A.sum(axis=1)).ravel()
-    Wn = scipy.sparse.diags(1.0 / np.maximum(deg, 1)) @ A
-    v = vertices.copy()
-    for _ in range(iterations):
-        for f in (0.5, -0.53):
-            v = v + f * (Wn @ v - v)
-    return v
-
-
-def _ls3_loop(vertices: np.ndarray, faces: np.ndarray, iterations: int,
-              threshold: float) -> tuple[np.ndarray, np.ndarray]:
-    """MeshLab LS3 Loop subdivision (Boye et al. 2010), via pymeshlab.
-
-    threshold: fraction of the bounding-box diagonal; edges longer than it are split.
-    """
-    import pymeshlab
-
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(vertices, np.float64),
-                               face_matrix=np.ascontiguousarray(faces, np.int32)))
-
-    def subdivide() -> None:
-        ms.meshing_surface_subdivision_ls3_loop(
-            loopweight="Loop", iterations=int(iterations), threshold=pymeshlab.PercentageValue(100.0 * threshold))
-
-    try:
-        subdivide()
-    except pymeshlab.PyMeshLabException:
-        # Marching cubes can pinch two sheets of the surface along an edge or at a vertex where the
-        # hull is one voxel thin; LS3 needs a 2-manifold. Split the pinches and close what opens.
-        from .surface import repair_pinches
-
-        repair_pinches(ms)
-        repaired = ms.current_mesh()
-        repaired_v, repaired_f = repaired.vertex_matrix().copy(), repaired.face_matrix().copy()
-        subdivide()
-        ms.meshing_remove_unreferenced_vertices()
-        if not np.isfinite(ms.current_mesh().vertex_matrix()).all():
-            # LS3 can still fail on a repaired surface, with NaN positions; smooth it without
-            # subdividing instead (Taubin: no shrinkage), rather than hand on a broken hull.
-            return (_taubin(repaired_v.astype(np.float64), repaired_f.astype(np.int64), 2 * iterations),
-                    repaired_f.astype(np.int64))
-    m = ms.current_mesh()
-    return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
-
-
 def _view_coverage(volume: torch.Tensor, origin: np.ndarray, h: float, masks: np.ndarray,
                    cameras: Cameras) -> np.ndarray:
     """Fraction of each view's mask that the hull's projection covers. Returns (V,) float64.
@@ -638,18 +540,18 @@ def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig()
     faces = faces.astype(np.int64)
     # Orient outward before subdivision (LS3 fits with the normals): rather than rely on
     # skimage's winding convention, flip when the signed volume is negative.
-    if _signed_volume(verts, faces) < 0:
-        faces = faces[:, ::-1].copy()
+    faces = orient_outward(verts, faces)
     step("marching_cubes", 0.75)
 
-    verts, faces, dropped = _largest_component(verts, faces, min_volume=h ** 3)
+    verts, faces, dropped = largest_component(verts, faces, min_volume=h ** 3)
     if dropped:
         warnings.warn(f"the visual hull has {dropped + 1} separate pieces; kept the largest, dropped "
                       f"{dropped} (stray mask pixels or an inconsistent view?)", stacklevel=2)
     step("components", 0.8)
 
     if config.smoothing_iterations > 0:
-        verts = _taubin(verts, faces, config.smoothing_iterations)
+        # the config counts lambda/mu steps, taubin_smooth single passes
+        verts = taubin_smooth(verts, faces, 2 * config.smoothing_iterations)
     if config.subdivision_iterations > 0:
         verts, faces = _ls3_loop(verts, faces, config.subdivision_iterations,
                                  config.subdivision_threshold)
@@ -657,13 +559,9 @@ def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig()
 
     # Marching cubes and MeshLab both return shared vertices, so no merging (process=False keeps
     # the topology exactly as built; merging coincident vertices could pinch it).
-    mesh = trimesh.Trimesh(verts, faces, process=False, validate=False)
-    if not (np.isfinite(mesh.vertices).all() and mesh.is_watertight and mesh.is_winding_consistent):
-        raise LookingGlassError(
-            "internal error: the carved hull is not a closed, consistently oriented surface "
-            "(please report it, with the masks and cameras)")
-    if mesh.volume < 0:  # consistent winding: positive volume <=> outward normals
-        mesh.invert()
+    mesh = trimesh.Trimesh(verts, orient_outward(verts, faces), process=False, validate=False)
+    require_closed_and_oriented(mesh, "the carved hull",
+                                " (an internal error: please report it, with the masks and cameras)")
     center = (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0)) / 2
     scale = float(np.linalg.norm(mesh.vertices - center, axis=1).max())
     step("finish", 1.0)
