@@ -424,36 +424,38 @@ def _view_coverage(volume: torch.Tensor, origin: np.ndarray, h: float, masks: np
 
 
 # ---------------------------------------------------------------------------------------------
-# Entry point
+# Steps of carve_visual_hull
 # ---------------------------------------------------------------------------------------------
+# Warnings raised in these steps use stacklevel=3: they point at the caller of carve_visual_hull.
 
-def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig(),
-                      progress: ProgressFn | None = None) -> VisualHull:
-    """Carve the visual hull of V silhouettes.
+class _StepClock:
+    """Seconds per sub-step of carve_visual_hull, each reported to the optional progress callback."""
 
-    masks: (V, H, W) bool, numpy or torch (object = True); H, W = the cameras' image size.
-    cameras: the V views, capture frame (any position and scale of the object).
-    config: see `HullConfig`.
-    progress: optional callback progress(sub_step, fraction_done) for a progress bar; called after
-        each sub-step with its name (the keys of `VisualHull.timings`).
-    Returns a `VisualHull` in the capture frame. Raises `LookingGlassError` when the inputs do not
-    match, a mask is empty, the hull is empty or unbounded, or the hull explains less than
-    `config.min_view_coverage` of some view's mask (masks and cameras disagree). Warns
-    (warnings.warn) when a mask touches its image border (the object is cut off there: the hull is
-    clipped to the image), when a view's coverage is below `config.warn_view_coverage`, and when
-    pieces of the hull disconnected from the largest one are dropped.
-    """
-    t_start = time.perf_counter()
-    timings: dict[str, float] = {}
-    clock = [t_start]
+    def __init__(self, progress: ProgressFn | None):
+        self.progress = progress
+        self.start = self.last = time.perf_counter()
+        self.timings: dict[str, float] = {}
 
-    def step(name: str, fraction: float) -> None:
+    def __call__(self, name: str, fraction: float) -> None:
+        """Sub-step `name` ended; `fraction` of the whole work is done."""
         now = time.perf_counter()
-        timings[name] = now - clock[0]
-        clock[0] = now
-        if progress is not None:
-            progress(name, fraction)
+        self.timings[name] = now - self.last
+        self.last = now
+        if self.progress is not None:
+            self.progress(name, fraction)
 
+    def with_total(self) -> dict[str, float]:
+        """The timings so far plus "total", the seconds since the clock was made."""
+        self.timings["total"] = time.perf_counter() - self.start
+        return self.timings
+
+
+def _checked_inputs(masks, cameras: Cameras, config: HullConfig) -> np.ndarray:
+    """The masks as (V, H, W) bool after checking them against the cameras and the config.
+
+    Raises ValueError for a bad config, LookingGlassError for masks that do not fit the cameras or
+    an empty mask; warns when a mask touches its image border (the hull is clipped there).
+    """
     if config.field not in ("distance", "binary"):
         raise ValueError(f'HullConfig.field must be "distance" or "binary", not {config.field!r}')
     if min(config.resolution, config.coarse_resolution) < 8:
@@ -475,59 +477,72 @@ def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig()
         warnings.warn(
             f"the mask of view(s) {np.flatnonzero(border).tolist()} touches the image border: the "
             "object is cut off there, and the hull is clipped to the image (outside counts as "
-            "background)", stacklevel=2)
+            "background)", stacklevel=3)
+    return masks
 
-    with torch_threads(config.num_threads), torch.inference_mode():
-        fields = silhouette_fields(masks)
-        carver = _Carver(fields, cameras, config.device, config.chunk_voxels)
-        step("masks", 0.05)
 
-        lo, hi = _find_box(carver, masks, cameras, config)
-        pad = config.padding * float((hi - lo).max())
-        lo, hi = lo - pad, hi + pad
-        step("box", 0.1)
+def _carve_fine(carver: _Carver, lo: np.ndarray, hi: np.ndarray, config: HullConfig):
+    """The fine carve over the box [lo, hi] (capture frame) at `config.resolution`.
 
+    The coarse search is conservative, but if the hull still reaches the grid's faces, that side
+    is grown and the grid carved again (up to 3 times) rather than the hull clipped flat.
+    Returns (field (nx, ny, nz) float32 on the carver's device, positive inside; lo, hi: the box
+    finally carved; origin (3,), voxel size h, shape: the grid, as `_grid_for_box`). With
+    `config.field == "binary"` the field is +-h/2 occupancy.
+    """
+    origin, h, shape = _grid_for_box(lo, hi, config.resolution)
+    far = -float(np.linalg.norm(hi - lo))
+    vol = carver.carve(origin, h, shape, far=far)
+    for _ in range(3):
+        touch = np.array([[float(vol[0].max()) > 0, float(vol[-1].max()) > 0],
+                          [float(vol[:, 0].max()) > 0, float(vol[:, -1].max()) > 0],
+                          [float(vol[:, :, 0].max()) > 0, float(vol[:, :, -1].max()) > 0]])
+        if not touch.any():
+            break
+        grow = 0.1 * float((hi - lo).max())
+        lo = lo - grow * touch[:, 0]
+        hi = hi + grow * touch[:, 1]
         origin, h, shape = _grid_for_box(lo, hi, config.resolution)
-        far = -float(np.linalg.norm(hi - lo))
         vol = carver.carve(origin, h, shape, far=far)
-        # Safety net: the coarse search is conservative, but if the hull still reaches the grid's
-        # faces, grow that side and carve again rather than clip the hull flat.
-        for _ in range(3):
-            touch = np.array([[float(vol[0].max()) > 0, float(vol[-1].max()) > 0],
-                              [float(vol[:, 0].max()) > 0, float(vol[:, -1].max()) > 0],
-                              [float(vol[:, :, 0].max()) > 0, float(vol[:, :, -1].max()) > 0]])
-            if not touch.any():
-                break
-            grow = 0.1 * float((hi - lo).max())
-            lo = lo - grow * touch[:, 0]
-            hi = hi + grow * touch[:, 1]
-            origin, h, shape = _grid_for_box(lo, hi, config.resolution)
-            vol = carver.carve(origin, h, shape, far=far)
-        if config.field == "binary":
-            vol = torch.where(vol > 0, 0.5 * h, -0.5 * h)
-        step("carve", 0.6)
+    if config.field == "binary":
+        vol = torch.where(vol > 0, 0.5 * h, -0.5 * h)
+    return vol, lo, hi, origin, h, shape
 
-        if not bool((vol > 0).any()):
-            raise LookingGlassError(
-                "the visual hull is empty at the carving resolution: the masks do not agree with "
-                "the cameras (or the object is thinner than a voxel)")
-        coverage = _view_coverage(vol, origin, h, masks, cameras)
-        bad = np.flatnonzero(coverage < config.min_view_coverage)
-        if len(bad):
-            raise LookingGlassError(
-                f"the masks do not agree with the cameras: the visual hull covers only "
-                f"{', '.join(f'{100 * coverage[v]:.0f}%' for v in bad)} of the mask of view(s) "
-                f"{bad.tolist()} (a wrong camera pose, masks in another order than the cameras, or "
-                f"a mask of another object)")
-        low = np.flatnonzero(coverage < config.warn_view_coverage)
-        if len(low):
-            warnings.warn(
-                f"the visual hull covers only {', '.join(f'{100 * coverage[v]:.0f}%' for v in low)} "
-                f"of the mask of view(s) {low.tolist()}: some masks or camera poses are off",
-                stacklevel=2)
-        volume = vol.cpu().numpy()
-    step("coverage", 0.65)
 
+def _checked_coverage(vol: torch.Tensor, origin: np.ndarray, h: float, masks: np.ndarray,
+                      cameras: Cameras, config: HullConfig) -> np.ndarray:
+    """Each view's mask coverage by the carved hull ((V,) float64, see `_view_coverage`).
+
+    Raises LookingGlassError when the hull is empty or covers less than `min_view_coverage` of a
+    view's mask; warns below `warn_view_coverage`.
+    """
+    if not bool((vol > 0).any()):
+        raise LookingGlassError(
+            "the visual hull is empty at the carving resolution: the masks do not agree with "
+            "the cameras (or the object is thinner than a voxel)")
+    coverage = _view_coverage(vol, origin, h, masks, cameras)
+    bad = np.flatnonzero(coverage < config.min_view_coverage)
+    if len(bad):
+        raise LookingGlassError(
+            f"the masks do not agree with the cameras: the visual hull covers only "
+            f"{', '.join(f'{100 * coverage[v]:.0f}%' for v in bad)} of the mask of view(s) "
+            f"{bad.tolist()} (a wrong camera pose, masks in another order than the cameras, or "
+            f"a mask of another object)")
+    low = np.flatnonzero(coverage < config.warn_view_coverage)
+    if len(low):
+        warnings.warn(
+            f"the visual hull covers only {', '.join(f'{100 * coverage[v]:.0f}%' for v in low)} "
+            f"of the mask of view(s) {low.tolist()}: some masks or camera poses are off",
+            stacklevel=3)
+    return coverage
+
+
+def _marching_cubes(volume: np.ndarray, origin: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Outward-oriented zero set of the carved field `volume` (nx, ny, nz), grid origin + index * h.
+
+    Returns vertices (N, 3) float64 in the capture frame and faces (M, 3) int64; closed (the grid
+    gets a layer of "outside"). Changes `volume` (samples exactly at zero).
+    """
     from skimage.measure import marching_cubes
 
     # Samples exactly at the level make zero-area triangles; nudge them off it (far below the
@@ -537,24 +552,75 @@ def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig()
     volume = np.pad(volume, 1, mode="constant", constant_values=-h)
     verts, faces, _, _ = marching_cubes(volume, level=0.0, spacing=(h, h, h), allow_degenerate=True)
     verts = verts.astype(np.float64) + (origin - h)  # undo the padding layer; capture frame
-    faces = faces.astype(np.int64)
     # Orient outward before subdivision (LS3 fits with the normals): rather than rely on
     # skimage's winding convention, flip when the signed volume is negative.
-    faces = orient_outward(verts, faces)
-    step("marching_cubes", 0.75)
+    return verts, orient_outward(verts, faces.astype(np.int64))
 
+
+def _largest_piece(verts: np.ndarray, faces: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """The hull's largest piece (vertices (K, 3), faces (F, 3)); warns when pieces larger than a
+    voxel (h^3) are dropped (specks where the field grazes zero at one sample are dropped silently)."""
     verts, faces, dropped = largest_component(verts, faces, min_volume=h ** 3)
     if dropped:
         warnings.warn(f"the visual hull has {dropped + 1} separate pieces; kept the largest, dropped "
-                      f"{dropped} (stray mask pixels or an inconsistent view?)", stacklevel=2)
-    step("components", 0.8)
+                      f"{dropped} (stray mask pixels or an inconsistent view?)", stacklevel=3)
+    return verts, faces
 
+
+def _smoothed(verts: np.ndarray, faces: np.ndarray, config: HullConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Optional Taubin smoothing, then LS3 Loop subdivision, as `config` asks."""
     if config.smoothing_iterations > 0:
         # the config counts lambda/mu steps, taubin_smooth single passes
         verts = taubin_smooth(verts, faces, 2 * config.smoothing_iterations)
     if config.subdivision_iterations > 0:
         verts, faces = _ls3_loop(verts, faces, config.subdivision_iterations,
                                  config.subdivision_threshold)
+    return verts, faces
+
+
+# ---------------------------------------------------------------------------------------------
+# Entry point
+# ---------------------------------------------------------------------------------------------
+
+def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig(),
+                      progress: ProgressFn | None = None) -> VisualHull:
+    """Carve the visual hull of V silhouettes.
+
+    masks: (V, H, W) bool, numpy or torch (object = True); H, W = the cameras' image size.
+    cameras: the V views, capture frame (any position and scale of the object).
+    config: see `HullConfig`.
+    progress: optional callback progress(sub_step, fraction_done) for a progress bar; called after
+        each sub-step with its name (the keys of `VisualHull.timings`).
+    Returns a `VisualHull` in the capture frame. Raises `LookingGlassError` when the inputs do not
+    match, a mask is empty, the hull is empty or unbounded, or the hull explains less than
+    `config.min_view_coverage` of some view's mask (masks and cameras disagree). Warns
+    (warnings.warn) when a mask touches its image border (the object is cut off there: the hull is
+    clipped to the image), when a view's coverage is below `config.warn_view_coverage`, and when
+    pieces of the hull disconnected from the largest one are dropped.
+    """
+    step = _StepClock(progress)
+    masks = _checked_inputs(masks, cameras, config)
+
+    with torch_threads(config.num_threads), torch.inference_mode():
+        carver = _Carver(silhouette_fields(masks), cameras, config.device, config.chunk_voxels)
+        step("masks", 0.05)
+
+        lo, hi = _find_box(carver, masks, cameras, config)
+        pad = config.padding * float((hi - lo).max())
+        step("box", 0.1)
+
+        vol, lo, hi, origin, h, shape = _carve_fine(carver, lo - pad, hi + pad, config)
+        step("carve", 0.6)
+
+        coverage = _checked_coverage(vol, origin, h, masks, cameras, config)
+        volume = vol.cpu().numpy()
+    step("coverage", 0.65)
+
+    verts, faces = _marching_cubes(volume, origin, h)
+    step("marching_cubes", 0.75)
+    verts, faces = _largest_piece(verts, faces, h)
+    step("components", 0.8)
+    verts, faces = _smoothed(verts, faces, config)
     step("subdivision", 0.95)
 
     # Marching cubes and MeshLab both return shared vertices, so no merging (process=False keeps
@@ -565,6 +631,5 @@ def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig()
     center = (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0)) / 2
     scale = float(np.linalg.norm(mesh.vertices - center, axis=1).max())
     step("finish", 1.0)
-    timings["total"] = time.perf_counter() - t_start
     return VisualHull(mesh=mesh, center=center, scale=scale, bbox=np.stack([lo, hi]),
-                      voxel_size=h, grid_shape=shape, view_coverage=coverage, timings=timings)
+                      voxel_size=h, grid_shape=shape, view_coverage=coverage, timings=step.with_total())
