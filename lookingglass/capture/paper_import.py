@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from ..errors import LookingGlassError
+from ..fileio import usual_mode
 from .images import HDR_SUFFIXES, read_envmap, read_image, read_mask, read_raw, write_image, write_mask
 from .scene import SCENE_FILE, SceneSpec, ViewSpec, load_capture, save_scene
 
@@ -300,6 +301,7 @@ def import_paper(cams: Path, images: Path, masks: Path, envmap: Path, out: Path,
     parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.importing-", dir=parent))
     try:
+        os.chmod(tmp, usual_mode(directory=True))  # it becomes `out`: not mkdtemp's private 0o700
         _write_scene(tmp, views, envmap, envmap_scale, size, fov_x_deg)
         load_capture(tmp)  # every scene-folder check, e.g. cameras that do not see the object
         _move_into_place(tmp, out, force)
