@@ -12,6 +12,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from .errors import LookingGlassError
+from .physics.constants import IOR_GLASS, PAPER_CAPTURE_FOV_X_DEG
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Reconstruct transparent objects from a few photos under a known environment map.")
@@ -92,7 +93,7 @@ def import_paper(
     envmap: Path = typer.Option(..., "--envmap", help="Environment map (.hdr, .exr or 8-bit)."),
     out: Path = typer.Option(..., "--out", help="Scene folder to write."),
     envmap_scale: float = typer.Option(1.0, help="Factor bringing the envmap into the images' units."),
-    fov_x: float = typer.Option(63.349, "--fov-x", help="Horizontal field of view in degrees."),
+    fov_x: float = typer.Option(PAPER_CAPTURE_FOV_X_DEG, "--fov-x", help="Horizontal field of view in degrees."),
     size: Optional[tuple[int, int]] = typer.Option(None, "--size", help="Resize images and masks to W H."),
     force: bool = typer.Option(False, "--force", help="Overwrite a non-empty output folder."),
 ) -> None:
@@ -112,7 +113,7 @@ def render(
     scene: Optional[Path] = typer.Option(None, "--scene", help="Take the cameras from this scene.json."),
     rig: Optional[int] = typer.Option(None, "--rig", help="The paper's rig of 5, 10 or 20 views around the unit sphere."),
     size: Optional[tuple[int, int]] = typer.Option(None, "--size", help="Image size W H."),
-    ior: float = typer.Option(1.4723, help="Index of refraction of the object."),
+    ior: float = typer.Option(IOR_GLASS, help="Index of refraction of the object."),
     seed: int = typer.Option(0, help="Seed of the rig jitter and the anti-aliasing."),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing scene folder."),
 ) -> None:

@@ -7,8 +7,41 @@ import hashlib
 import json
 import os
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any, Callable, Iterator
+
+
+_UMASK_LOCK = threading.Lock()
+
+
+def _umask() -> int:
+    """The process's umask, read without changing it where the system allows.
+
+    Linux (4.7+) reports it in /proc/self/status: a plain read, safe with threads. Elsewhere it can
+    only be read by setting it and setting it back; the lock keeps two of our own threads from
+    interleaving (which could leave the wrong umask behind), but a file another thread creates in
+    that instant gets the temporary umask 0o077: private rather than too open.
+    """
+    try:
+        with open("/proc/self/status", encoding="ascii", errors="replace") as status:
+            for line in status:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    with _UMASK_LOCK:
+        old = os.umask(0o077)
+        os.umask(old)
+    return old
+
+
+def usual_mode(directory: bool = False) -> int:
+    """The mode open() / mkdir() give a new file / folder: 0o666 / 0o777 less the umask.
+
+    For files and folders made by `tempfile` (mode 0o600 / 0o700, private) that become outputs.
+    """
+    return (0o777 if directory else 0o666) & ~_umask()
 
 
 @contextlib.contextmanager
@@ -16,7 +49,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside `path`; rename it onto `path` only if the block succeeds.
 
     The temporary name keeps the suffix of `path` so writers that pick a format by extension
-    (OpenCV, trimesh) still work.
+    (OpenCV, trimesh) still work. The file gets the usual mode (`usual_mode`), not mkstemp's 0o600.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -25,6 +58,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        # after the writer, in case it replaced the file rather than writing into it
+        os.chmod(tmp_path, usual_mode())
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():

@@ -34,6 +34,8 @@ import torch
 import trimesh
 
 from .errors import LookingGlassError
+from .meshes import largest_component, orient_outward, require_closed_and_oriented, taubin_smooth
+from .meshes import subdivide_ls3_loop as _ls3_loop  # the name hull's tests import
 from .threads import torch_threads
 from .physics.camera import Cameras
 
@@ -402,106 +404,6 @@ def _find_box(carver: _Carver, masks: np.ndarray, cameras: Cameras,
     return lo, hi
 
 
-# ---------------------------------------------------------------------------------------------
-# Mesh
-# ---------------------------------------------------------------------------------------------
-
-def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """Volume enclosed by a closed triangle mesh; positive when its faces wind outward."""
-    a, b, c = (vertices[faces[:, i]] for i in range(3))
-    return float(np.einsum("ij,ij->", a, np.cross(b, c))) / 6.0
-
-
-def _largest_component(vertices: np.ndarray, faces: np.ndarray,
-                       min_volume: float) -> tuple[np.ndarray, np.ndarray, int]:
-    """Keep the connected component with the most faces.
-
-    vertices (N, 3), faces (F, 3), closed and outward. Returns the kept vertices and faces and the
-    number of dropped pieces larger than `min_volume` (pieces under one voxel are specks where the
-    field grazes zero at a single sample, below the carving's resolution: dropped silently).
-    """
-    import scipy.sparse
-    import scipy.sparse.csgraph
-
-    n = len(vertices)
-    # Vertex graph through face edges (a->b, b->c); connectivity is all that matters.
-    rows = np.concatenate([faces[:, 0], faces[:, 1]])
-    cols = np.concatenate([faces[:, 1], faces[:, 2]])
-    g = scipy.sparse.coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(n, n))
-    ncomp, label = scipy.sparse.csgraph.connected_components(g, directed=False)
-    if ncomp <= 1:
-        return vertices, faces, 0
-    face_label = label[faces[:, 0]]
-    counts = np.bincount(face_label, minlength=ncomp)
-    keep_label = int(np.argmax(counts))
-    a, b, c = (vertices[faces[:, i]] for i in range(3))
-    piece_volume = np.bincount(face_label, weights=np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0,
-                               minlength=ncomp)
-    big = (counts > 0) & (np.abs(piece_volume) > min_volume)
-    big[keep_label] = False
-    dropped = int(big.sum())
-    faces = faces[face_label == keep_label]
-    used = np.zeros(n, bool)
-    used[faces.ravel()] = True
-    remap = np.cumsum(used) - 1
-    return vertices[used], remap[faces], dropped
-
-
-def _taubin(vertices: np.ndarray, faces: np.ndarray, iterations: int) -> np.ndarray:
-    """Taubin lambda/mu smoothing (no shrinkage), uniform weights. vertices (N, 3) float64."""
-    import scipy.sparse
-
-    n = len(vertices)
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.concatenate([e, e[:, ::-1]])
-    A = scipy.sparse.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
-    A.data[:] = 1.0  # duplicates (each interior edge appears twice) -> 1
-    deg = np.asarray(A.sum(axis=1)).ravel()
-    Wn = scipy.sparse.diags(1.0 / np.maximum(deg, 1)) @ A
-    v = vertices.copy()
-    for _ in range(iterations):
-        for f in (0.5, -0.53):
-            v = v + f * (Wn @ v - v)
-    return v
-
-
-def _ls3_loop(vertices: np.ndarray, faces: np.ndarray, iterations: int,
-              threshold: float) -> tuple[np.ndarray, np.ndarray]:
-    """MeshLab LS3 Loop subdivision (Boye et al. 2010), via pymeshlab.
-
-    threshold: fraction of the bounding-box diagonal; edges longer than it are split.
-    """
-    import pymeshlab
-
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(vertices, np.float64),
-                               face_matrix=np.ascontiguousarray(faces, np.int32)))
-
-    def subdivide() -> None:
-        ms.meshing_surface_subdivision_ls3_loop(
-            loopweight="Loop", iterations=int(iterations), threshold=pymeshlab.PercentageValue(100.0 * threshold))
-
-    try:
-        subdivide()
-    except pymeshlab.PyMeshLabException:
-        # Marching cubes can pinch two sheets of the surface along an edge or at a vertex where the
-        # hull is one voxel thin; LS3 needs a 2-manifold. Split the pinches and close what opens.
-        from .surface import repair_pinches
-
-        repair_pinches(ms)
-        repaired = ms.current_mesh()
-        repaired_v, repaired_f = repaired.vertex_matrix().copy(), repaired.face_matrix().copy()
-        subdivide()
-        ms.meshing_remove_unreferenced_vertices()
-        if not np.isfinite(ms.current_mesh().vertex_matrix()).all():
-            # LS3 can still fail on a repaired surface, with NaN positions; smooth it without
-            # subdividing instead (Taubin: no shrinkage), rather than hand on a broken hull.
-            return (_taubin(repaired_v.astype(np.float64), repaired_f.astype(np.int64), 2 * iterations),
-                    repaired_f.astype(np.int64))
-    m = ms.current_mesh()
-    return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
-
-
 def _view_coverage(volume: torch.Tensor, origin: np.ndarray, h: float, masks: np.ndarray,
                    cameras: Cameras) -> np.ndarray:
     """Fraction of each view's mask that the hull's projection covers. Returns (V,) float64.
@@ -541,36 +443,38 @@ def _view_coverage(volume: torch.Tensor, origin: np.ndarray, h: float, masks: np
 
 
 # ---------------------------------------------------------------------------------------------
-# Entry point
+# Steps of carve_visual_hull
 # ---------------------------------------------------------------------------------------------
+# Warnings raised in these steps use stacklevel=3: they point at the caller of carve_visual_hull.
 
-def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig(),
-                      progress: ProgressFn | None = None) -> VisualHull:
-    """Carve the visual hull of V silhouettes.
+class _StepClock:
+    """Seconds per sub-step of carve_visual_hull, each reported to the optional progress callback."""
 
-    masks: (V, H, W) bool, numpy or torch (object = True); H, W = the cameras' image size.
-    cameras: the V views, capture frame (any position and scale of the object).
-    config: see `HullConfig`.
-    progress: optional callback progress(sub_step, fraction_done) for a progress bar; called after
-        each sub-step with its name (the keys of `VisualHull.timings`).
-    Returns a `VisualHull` in the capture frame. Raises `LookingGlassError` when the inputs do not
-    match, a mask is empty, the hull is empty or unbounded, or the hull explains less than
-    `config.min_view_coverage` of some view's mask (masks and cameras disagree). Warns
-    (warnings.warn) when a mask touches its image border (the object is cut off there: the hull is
-    clipped to the image), when a view's coverage is below `config.warn_view_coverage`, and when
-    pieces of the hull disconnected from the largest one are dropped.
-    """
-    t_start = time.perf_counter()
-    timings: dict[str, float] = {}
-    clock = [t_start]
+    def __init__(self, progress: ProgressFn | None):
+        self.progress = progress
+        self.start = self.last = time.perf_counter()
+        self.timings: dict[str, float] = {}
 
-    def step(name: str, fraction: float) -> None:
+    def __call__(self, name: str, fraction: float) -> None:
+        """Sub-step `name` ended; `fraction` of the whole work is done."""
         now = time.perf_counter()
-        timings[name] = now - clock[0]
-        clock[0] = now
-        if progress is not None:
-            progress(name, fraction)
+        self.timings[name] = now - self.last
+        self.last = now
+        if self.progress is not None:
+            self.progress(name, fraction)
 
+    def with_total(self) -> dict[str, float]:
+        """The timings so far plus "total", the seconds since the clock was made."""
+        self.timings["total"] = time.perf_counter() - self.start
+        return self.timings
+
+
+def _checked_inputs(masks, cameras: Cameras, config: HullConfig) -> np.ndarray:
+    """The masks as (V, H, W) bool after checking them against the cameras and the config.
+
+    Raises ValueError for a bad config, LookingGlassError for masks that do not fit the cameras or
+    an empty mask; warns when a mask touches its image border (the hull is clipped there).
+    """
     if config.field not in ("distance", "binary"):
         raise ValueError(f'HullConfig.field must be "distance" or "binary", not {config.field!r}')
     if min(config.resolution, config.coarse_resolution) < 8:
@@ -592,59 +496,72 @@ def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig()
         warnings.warn(
             f"the mask of view(s) {np.flatnonzero(border).tolist()} touches the image border: the "
             "object is cut off there, and the hull is clipped to the image (outside counts as "
-            "background)", stacklevel=2)
+            "background)", stacklevel=3)
+    return masks
 
-    with torch_threads(config.num_threads), torch.inference_mode():
-        fields = silhouette_fields(masks)
-        carver = _Carver(fields, cameras, config.device, config.chunk_voxels)
-        step("masks", 0.05)
 
-        lo, hi = _find_box(carver, masks, cameras, config)
-        pad = config.padding * float((hi - lo).max())
-        lo, hi = lo - pad, hi + pad
-        step("box", 0.1)
+def _carve_fine(carver: _Carver, lo: np.ndarray, hi: np.ndarray, config: HullConfig):
+    """The fine carve over the box [lo, hi] (capture frame) at `config.resolution`.
 
+    The coarse search is conservative, but if the hull still reaches the grid's faces, that side
+    is grown and the grid carved again (up to 3 times) rather than the hull clipped flat.
+    Returns (field (nx, ny, nz) float32 on the carver's device, positive inside; lo, hi: the box
+    finally carved; origin (3,), voxel size h, shape: the grid, as `_grid_for_box`). With
+    `config.field == "binary"` the field is +-h/2 occupancy.
+    """
+    origin, h, shape = _grid_for_box(lo, hi, config.resolution)
+    far = -float(np.linalg.norm(hi - lo))
+    vol = carver.carve(origin, h, shape, far=far)
+    for _ in range(3):
+        touch = np.array([[float(vol[0].max()) > 0, float(vol[-1].max()) > 0],
+                          [float(vol[:, 0].max()) > 0, float(vol[:, -1].max()) > 0],
+                          [float(vol[:, :, 0].max()) > 0, float(vol[:, :, -1].max()) > 0]])
+        if not touch.any():
+            break
+        grow = 0.1 * float((hi - lo).max())
+        lo = lo - grow * touch[:, 0]
+        hi = hi + grow * touch[:, 1]
         origin, h, shape = _grid_for_box(lo, hi, config.resolution)
-        far = -float(np.linalg.norm(hi - lo))
         vol = carver.carve(origin, h, shape, far=far)
-        # Safety net: the coarse search is conservative, but if the hull still reaches the grid's
-        # faces, grow that side and carve again rather than clip the hull flat.
-        for _ in range(3):
-            touch = np.array([[float(vol[0].max()) > 0, float(vol[-1].max()) > 0],
-                              [float(vol[:, 0].max()) > 0, float(vol[:, -1].max()) > 0],
-                              [float(vol[:, :, 0].max()) > 0, float(vol[:, :, -1].max()) > 0]])
-            if not touch.any():
-                break
-            grow = 0.1 * float((hi - lo).max())
-            lo = lo - grow * touch[:, 0]
-            hi = hi + grow * touch[:, 1]
-            origin, h, shape = _grid_for_box(lo, hi, config.resolution)
-            vol = carver.carve(origin, h, shape, far=far)
-        if config.field == "binary":
-            vol = torch.where(vol > 0, 0.5 * h, -0.5 * h)
-        step("carve", 0.6)
+    if config.field == "binary":
+        vol = torch.where(vol > 0, 0.5 * h, -0.5 * h)
+    return vol, lo, hi, origin, h, shape
 
-        if not bool((vol > 0).any()):
-            raise LookingGlassError(
-                "the visual hull is empty at the carving resolution: the masks do not agree with "
-                "the cameras (or the object is thinner than a voxel)")
-        coverage = _view_coverage(vol, origin, h, masks, cameras)
-        bad = np.flatnonzero(coverage < config.min_view_coverage)
-        if len(bad):
-            raise LookingGlassError(
-                f"the masks do not agree with the cameras: the visual hull covers only "
-                f"{', '.join(f'{100 * coverage[v]:.0f}%' for v in bad)} of the mask of view(s) "
-                f"{bad.tolist()} (a wrong camera pose, masks in another order than the cameras, or "
-                f"a mask of another object)")
-        low = np.flatnonzero(coverage < config.warn_view_coverage)
-        if len(low):
-            warnings.warn(
-                f"the visual hull covers only {', '.join(f'{100 * coverage[v]:.0f}%' for v in low)} "
-                f"of the mask of view(s) {low.tolist()}: some masks or camera poses are off",
-                stacklevel=2)
-        volume = vol.cpu().numpy()
-    step("coverage", 0.65)
 
+def _checked_coverage(vol: torch.Tensor, origin: np.ndarray, h: float, masks: np.ndarray,
+                      cameras: Cameras, config: HullConfig) -> np.ndarray:
+    """Each view's mask coverage by the carved hull ((V,) float64, see `_view_coverage`).
+
+    Raises LookingGlassError when the hull is empty or covers less than `min_view_coverage` of a
+    view's mask; warns below `warn_view_coverage`.
+    """
+    if not bool((vol > 0).any()):
+        raise LookingGlassError(
+            "the visual hull is empty at the carving resolution: the masks do not agree with "
+            "the cameras (or the object is thinner than a voxel)")
+    coverage = _view_coverage(vol, origin, h, masks, cameras)
+    bad = np.flatnonzero(coverage < config.min_view_coverage)
+    if len(bad):
+        raise LookingGlassError(
+            f"the masks do not agree with the cameras: the visual hull covers only "
+            f"{', '.join(f'{100 * coverage[v]:.0f}%' for v in bad)} of the mask of view(s) "
+            f"{bad.tolist()} (a wrong camera pose, masks in another order than the cameras, or "
+            f"a mask of another object)")
+    low = np.flatnonzero(coverage < config.warn_view_coverage)
+    if len(low):
+        warnings.warn(
+            f"the visual hull covers only {', '.join(f'{100 * coverage[v]:.0f}%' for v in low)} "
+            f"of the mask of view(s) {low.tolist()}: some masks or camera poses are off",
+            stacklevel=3)
+    return coverage
+
+
+def _marching_cubes(volume: np.ndarray, origin: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Outward-oriented zero set of the carved field `volume` (nx, ny, nz), grid origin + index * h.
+
+    Returns vertices (N, 3) float64 in the capture frame and faces (M, 3) int64; closed (the grid
+    gets a layer of "outside"). Changes `volume` (samples exactly at zero).
+    """
     from skimage.measure import marching_cubes
 
     # Samples exactly at the level make zero-area triangles; nudge them off it (far below the
@@ -654,39 +571,86 @@ def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig()
     volume = np.pad(volume, 1, mode="constant", constant_values=-h)
     verts, faces, _, _ = marching_cubes(volume, level=0.0, spacing=(h, h, h), allow_degenerate=True)
     verts = verts.astype(np.float64) + (origin - h)  # undo the padding layer; capture frame
-    faces = faces.astype(np.int64)
     # Orient outward before subdivision (LS3 fits with the normals): rather than rely on
     # skimage's winding convention, flip when the signed volume is negative.
-    if _signed_volume(verts, faces) < 0:
-        faces = faces[:, ::-1].copy()
-    step("marching_cubes", 0.75)
+    return verts, orient_outward(verts, faces.astype(np.int64))
 
-    verts, faces, dropped = _largest_component(verts, faces, min_volume=h ** 3)
+
+def _largest_piece(verts: np.ndarray, faces: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """The hull's largest piece (vertices (K, 3), faces (F, 3)); warns when pieces larger than a
+    voxel (h^3) are dropped (specks where the field grazes zero at one sample are dropped silently)."""
+    verts, faces, dropped = largest_component(verts, faces, min_volume=h ** 3)
     if dropped:
         warnings.warn(f"the visual hull has {dropped + 1} separate pieces; kept the largest, dropped "
-                      f"{dropped} (stray mask pixels or an inconsistent view?)", stacklevel=2)
-    step("components", 0.8)
+                      f"{dropped} (stray mask pixels or an inconsistent view?)", stacklevel=3)
+    return verts, faces
 
+
+def _smoothed(verts: np.ndarray, faces: np.ndarray, config: HullConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Optional Taubin smoothing, then LS3 Loop subdivision, as `config` asks."""
     if config.smoothing_iterations > 0:
-        verts = _taubin(verts, faces, config.smoothing_iterations)
+        # the config counts lambda/mu steps, taubin_smooth single passes
+        verts = taubin_smooth(verts, faces, 2 * config.smoothing_iterations)
     if config.subdivision_iterations > 0:
         verts, faces = _ls3_loop(verts, faces, config.subdivision_iterations,
                                  config.subdivision_threshold)
+    return verts, faces
+
+
+# ---------------------------------------------------------------------------------------------
+# Entry point
+# ---------------------------------------------------------------------------------------------
+
+def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig(),
+                      progress: ProgressFn | None = None) -> VisualHull:
+    """Carve the visual hull of V silhouettes.
+
+    masks: (V, H, W) bool, numpy or torch (object = True); H, W = the cameras' image size.
+    cameras: the V views, capture frame (any position and scale of the object).
+    config: see `HullConfig`.
+    progress: optional callback progress(sub_step, fraction_done) for a progress bar; called after
+        each sub-step with its name (the keys of `VisualHull.timings`).
+    Returns a `VisualHull` in the capture frame. Raises `LookingGlassError` when the inputs do not
+    match, a mask is empty, the hull is empty or unbounded, or the hull explains less than
+    `config.min_view_coverage` of some view's mask (masks and cameras disagree). Warns
+    (warnings.warn) when a mask touches its image border (the object is cut off there: the hull is
+    clipped to the image), when a view's coverage is below `config.warn_view_coverage`, and when
+    pieces of the hull disconnected from the largest one are dropped.
+    """
+    step = _StepClock(progress)
+    masks = _checked_inputs(masks, cameras, config)
+
+    with torch_threads(config.num_threads), torch.inference_mode():
+        carver = _Carver(silhouette_fields(masks), cameras, config.device, config.chunk_voxels)
+        step("masks", 0.05)
+
+        lo, hi = _find_box(carver, masks, cameras, config)
+        pad = config.padding * float((hi - lo).max())
+        step("box", 0.1)
+
+        vol, lo, hi, origin, h, shape = _carve_fine(carver, lo - pad, hi + pad, config)
+        step("carve", 0.6)
+
+        coverage = _checked_coverage(vol, origin, h, masks, cameras, config)
+        volume = vol.cpu().numpy()
+    step("coverage", 0.65)
+
+    verts, faces = _marching_cubes(volume, origin, h)
+    step("marching_cubes", 0.75)
+    verts, faces = _largest_piece(verts, faces, h)
+    step("components", 0.8)
+    verts, faces = _smoothed(verts, faces, config)
     step("subdivision", 0.95)
 
     # Marching cubes and MeshLab both return shared vertices, so no merging (process=False keeps
     # the topology exactly as built; merging coincident vertices could pinch it).
     # Vertices rounded to float32 (the precision PLY files, the renderer and `generate`'s stored
     # hulls keep; ~1e-7 of the box, far below a voxel), so a hull read back is the hull carved.
-    mesh = trimesh.Trimesh(verts.astype(np.float32).astype(np.float64), faces, process=False, validate=False)
-    if not (np.isfinite(mesh.vertices).all() and mesh.is_watertight and mesh.is_winding_consistent):
-        raise LookingGlassError(
-            "internal error: the carved hull is not a closed, consistently oriented surface "
-            "(please report it, with the masks and cameras)")
-    if mesh.volume < 0:  # consistent winding: positive volume <=> outward normals
-        mesh.invert()
+    verts = verts.astype(np.float32).astype(np.float64)
+    mesh = trimesh.Trimesh(verts, orient_outward(verts, faces), process=False, validate=False)
+    require_closed_and_oriented(mesh, "the carved hull",
+                                " (an internal error: please report it, with the masks and cameras)")
     center, scale = hull_normalization(np.asarray(mesh.vertices))
     step("finish", 1.0)
-    timings["total"] = time.perf_counter() - t_start
     return VisualHull(mesh=mesh, center=center, scale=scale, bbox=np.stack([lo, hi]),
-                      voxel_size=h, grid_shape=shape, view_coverage=coverage, timings=timings)
+                      voxel_size=h, grid_shape=shape, view_coverage=coverage, timings=step.with_total())

@@ -35,6 +35,7 @@ from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
 from .errors import LookingGlassError
+from .meshes import manifold_mesh, merged_and_repaired, require_closed_and_oriented, taubin_smooth, without_crumbs
 
 __all__ = ["poisson_surface", "close_narrow_tunnels", "DEFAULT_TRIM_FRACTION"]
 
@@ -71,60 +72,7 @@ def _run_poisson(points: np.ndarray, normals: np.ndarray, depth: int, threads: i
             threads=_threads(threads))
     except pymeshlab.PyMeshLabException as exc:
         raise LookingGlassError(f"Poisson surface reconstruction failed: {exc}") from exc
-    return _merged_and_repaired(ms)
-
-
-def _merged_and_repaired(ms) -> trimesh.Trimesh:
-    """The current mesh of pymeshlab MeshSet `ms`, a marching-cubes surface, as a manifold trimesh."""
-    import pymeshlab
-
-    # Marching cubes leaves vertices a hair apart where the surface passes near a grid corner.
-    # Merged here (1e-6 of the box diagonal) and the pinches that makes split, so no later rounding
-    # (the move back to the capture's frame, a PLY reader merging equal positions) can pinch the
-    # written mesh into a non-manifold one.
-    ms.meshing_merge_close_vertices(threshold=pymeshlab.PercentageValue(1e-4))
-    repair_pinches(ms)
-    m = ms.current_mesh()  # Poisson adds its surface as a new, current layer
-    # process=True merges duplicated vertices, so shared edges are recognized
-    return trimesh.Trimesh(vertices=m.vertex_matrix(), faces=m.face_matrix(), process=True)
-
-
-def _manifold_mesh(vertices: np.ndarray, faces: np.ndarray) -> trimesh.Trimesh:
-    import pymeshlab
-
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(vertices, np.float64),
-                               face_matrix=np.ascontiguousarray(faces, np.int32)))
-    return _merged_and_repaired(ms)
-
-
-def _without_crumbs(parts: list[trimesh.Trimesh]) -> trimesh.Trimesh:
-    """The components of `parts` (non-empty) whose area is at least MIN_COMPONENT_AREA of the
-    largest one's, as one mesh: marching cubes leaves crumbs, real pieces are far larger."""
-    largest = max(part.area for part in parts)
-    kept = [part for part in parts if part.area >= MIN_COMPONENT_AREA * largest]
-    return kept[0] if len(kept) == 1 else trimesh.util.concatenate(kept)
-
-
-def _orient_and_check(mesh: trimesh.Trimesh, what: str, hint: str = "") -> None:
-    """Consistent outward winding in place (each body flipped if its volume is negative); raises
-    LookingGlassError when `mesh` is open, non-manifold or encloses no volume."""
-    mesh.fix_normals(multibody=True)
-    if not mesh.is_watertight or not mesh.is_winding_consistent:
-        raise LookingGlassError(f"{what} is not watertight (open or non-manifold edges){hint}")
-    if not mesh.volume > 0:
-        raise LookingGlassError(f"{what} encloses no volume")
-
-
-def repair_pinches(ms) -> None:
-    """Split the current mesh of pymeshlab MeshSet `ms` where two sheets touch along an edge or at
-    a vertex (marching cubes makes these where a surface is one cell thin), and close what opens."""
-    ms.meshing_remove_duplicate_vertices()
-    ms.meshing_remove_null_faces()
-    ms.meshing_repair_non_manifold_edges(method="Split Vertices")
-    ms.meshing_repair_non_manifold_vertices()
-    ms.meshing_close_holes()
-    ms.meshing_remove_unreferenced_vertices()
+    return merged_and_repaired(ms)
 
 
 def _outside_hull_median(hull: trimesh.Trimesh, vertices: np.ndarray, probes: int = 256) -> float:
@@ -190,15 +138,16 @@ def poisson_surface(points, normals, depth: int = 8, hull: trimesh.Trimesh | Non
                                 f"(all {len(parts)} components farther than {trim_distance:.4g})")
     # Every near component is kept, not only the largest: where Poisson cuts a thin part of the
     # object (a bar, a handle) the pieces are real surface.
-    mesh = _without_crumbs(near)
+    mesh = without_crumbs(near, MIN_COMPONENT_AREA)
 
     # ---- report (not trim) faces far from every point: trimming would open holes ---------------
     far_faces = int((tree.query(mesh.triangles_center, k=1)[0] > trim_distance).sum())
 
     if smooth_iterations > 0:
-        trimesh.smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=int(smooth_iterations))
+        mesh.vertices = taubin_smooth(mesh.vertices, mesh.faces, int(smooth_iterations))
 
-    _orient_and_check(mesh, "Poisson surface", "; try a lower depth or denser points")
+    mesh.fix_normals(multibody=True)  # consistent winding, each body outward
+    require_closed_and_oriented(mesh, "Poisson surface", "; try a lower depth or denser points")
     mesh.metadata["poisson"] = {
         "depth": int(depth),
         "points_used": int(len(p)),
@@ -287,11 +236,12 @@ def close_narrow_tunnels(mesh: trimesh.Trimesh, pitch: float, radius: int, sampl
     added = ndimage.binary_fill_holes(ndimage.binary_closing(inside, structure=_ball(int(radius)))) & ~inside
     field[added] = -0.5 * pitch  # the plugs: inside, half a step from their boundary
     vertices, faces, _, _ = marching_cubes(field, 0.0, spacing=(pitch, pitch, pitch))
-    closed = _manifold_mesh(vertices + lo, faces)
+    closed = manifold_mesh(vertices + lo, faces)
     parts = closed.split(only_watertight=False)
     if not parts:
         raise LookingGlassError("closing the narrow tunnels left no surface")
-    closed = _without_crumbs(parts)
-    _orient_and_check(closed, "the surface with its narrow tunnels closed")
+    closed = without_crumbs(parts, MIN_COMPONENT_AREA)
+    closed.fix_normals(multibody=True)  # consistent winding, each body outward
+    require_closed_and_oriented(closed, "the surface with its narrow tunnels closed")
     closed.metadata["closing"] = {"pitch": float(pitch), "radius": int(radius), "cells_added": int(added.sum())}
     return closed

@@ -242,3 +242,21 @@ def test_camera_order_mismatch_caught_by_scene_checks(layout, tmp_path):
     lines = [str(V_MASKED)] + [" ".join(map(repr, a[i].tolist())) for i in range(V_MASKED) for a in (origin, target, up)]
     cam.write_text("\n".join(lines))
     expect_import_error(layout, tmp_path / "o", "images/6.png", "behind this camera")
+
+
+@pytest.mark.parametrize("umask, folder_mode, file_mode", [(0o022, 0o755, 0o644), (0o077, 0o700, 0o600)])
+def test_output_has_the_usual_modes(layout, tmp_path, umask, folder_mode, file_mode):
+    """The scene folder is made by mkdtemp (0o700) and renamed into place: it, its subfolders and
+    its files must get the modes mkdir / open give under the umask, not private ones."""
+    import os
+    import stat
+
+    out = tmp_path / "scene"
+    old = os.umask(umask)
+    try:
+        run_import(layout, out)
+    finally:
+        os.umask(old)
+    modes = {p.relative_to(out).as_posix(): stat.S_IMODE(p.stat().st_mode) for p in [out, *out.rglob("*")]}
+    assert {name for name, m in modes.items() if m != (folder_mode if (out / name).is_dir() else file_mode)} == set()
+    assert {"scene.json", "envmap.hdr", "images", "masks/1.png"} <= set(modes)

@@ -23,19 +23,21 @@ import re
 import shutil
 import tempfile
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from ..errors import LookingGlassError
+from ..fileio import usual_mode
 from .images import HDR_SUFFIXES, read_envmap, read_image, read_mask, read_raw, write_image, write_mask
 from .scene import SCENE_FILE, SceneSpec, ViewSpec, load_capture, save_scene
 
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
 MASK_SUFFIXES = (".png", ".jpg", ".jpeg")
 ENVMAP_SUFFIXES = (".hdr", ".exr", ".png", ".jpg", ".jpeg")
-PAPER_FOV_X_DEG = 63.349
+from ..physics.constants import PAPER_CAPTURE_FOV_X_DEG as PAPER_FOV_X_DEG  # noqa: E402
 MAX_ASPECT_ERROR_PX = 0.5
 
 
@@ -133,6 +135,142 @@ def _refuse_dangerous_out(out: Path, inputs: list[Path]) -> None:
             raise LookingGlassError(f"output folder would replace the input {p}", out)
 
 
+@dataclass(frozen=True)
+class _PaperView:
+    """One masked view of the paper's layout: the mask's file stem, its photo and mask files, and
+    its look-at camera (world frame of the capture)."""
+
+    stem: str
+    photo: Path
+    mask: Path
+    origin: tuple[float, float, float]
+    target: tuple[float, float, float]
+    up: tuple[float, float, float]
+
+
+def _checked_size(envmap_scale: float, fov_x_deg: float, size) -> tuple[int, int] | None:
+    """Check the numeric options of `import_paper`; returns `size` as (W, H) ints (or None)."""
+    if not (np.isfinite(envmap_scale) and envmap_scale > 0):
+        raise LookingGlassError(f"envmap scale must be a positive number, got {envmap_scale}")
+    if not (np.isfinite(fov_x_deg) and 0 < fov_x_deg < 180):
+        raise LookingGlassError(f"fov_x must be in (0, 180) degrees, got {fov_x_deg}")
+    if size is None:
+        return None
+    if len(size) != 2 or any(int(s) != s or s <= 0 for s in size):
+        raise LookingGlassError(f"size must be two positive integers W H, got {size}")
+    return int(size[0]), int(size[1])
+
+
+def _check_envmap_and_out(envmap: Path, out: Path, inputs: list[Path], force: bool) -> None:
+    """The envmap must be a file of a known type; `out` must not replace an input and, unless
+    force, must be missing or an empty folder."""
+    if not envmap.is_file():
+        raise LookingGlassError("environment map not found" if not envmap.exists() else "not a file", envmap)
+    if envmap.suffix.lower() not in ENVMAP_SUFFIXES:
+        raise LookingGlassError(f"unsupported environment map type '{envmap.suffix}' (use .hdr, .exr, .png or .jpg)",
+                                envmap)
+    _refuse_dangerous_out(out, inputs)
+    if out.exists():
+        if not out.is_dir():
+            raise LookingGlassError("output exists and is not a folder", out)
+        if any(out.iterdir()) and not force:
+            raise LookingGlassError("output folder is not empty (pass --force, or force=True, to replace it)", out)
+
+
+def _photos_for(stems: list[str], mask_files: dict[str, list[Path]], photo_files: dict[str, list[Path]],
+                images: Path) -> list[Path]:
+    """The photo of each mask stem (files by stem, as `_list_files`, of the masks and of the photos
+    in folder `images`): the same stem, else the same stem in another case. Raises
+    LookingGlassError for a stem with no photo or several."""
+    lower: dict[str, list[Path]] = {}
+    for stem, paths in photo_files.items():
+        lower.setdefault(stem.lower(), []).extend(paths)
+    photos: list[Path] = []
+    unmatched = []
+    for stem in stems:
+        cands = photo_files.get(stem) or lower.get(stem.lower(), [])
+        if not cands:
+            unmatched.append(stem)
+        elif len(cands) > 1:
+            raise LookingGlassError(f"several photos match the mask stem '{stem}': "
+                                    f"{', '.join(p.name for p in sorted(cands))}", images)
+        else:
+            photos.append(cands[0])
+    if unmatched:
+        shown = ", ".join(mask_files[s][0].name for s in unmatched[:5]) + (" ..." if len(unmatched) > 5 else "")
+        raise LookingGlassError(f"no photo in {images} for mask{'s' if len(unmatched) > 1 else ''} {shown} "
+                                "(photos are matched to masks by file stem)", mask_files[unmatched[0]][0])
+    return photos
+
+
+def _paper_views(cams: Path, images: Path, masks: Path) -> list[_PaperView]:
+    """The masked views, in the natural order of the mask stems, paired with the camera file's
+    views (in that order) and with their photos. Raises LookingGlassError naming the file at fault."""
+    cam_file = _find_camera_file(cams)
+    origin, target, up = read_paper_cameras(cam_file)
+    mask_files = _list_files(masks, MASK_SUFFIXES, "mask")
+    photo_files = _list_files(images, PHOTO_SUFFIXES, "image")
+    for stem, paths in mask_files.items():
+        if len(paths) > 1:
+            names = ", ".join(p.name for p in sorted(paths))
+            raise LookingGlassError(f"several masks share the stem '{stem}': {names}", masks)
+    stems = sorted(mask_files, key=natural_key)
+    if not stems:
+        raise LookingGlassError(f"no masks ({'/'.join(MASK_SUFFIXES)}) in this folder", masks)
+    if len(stems) != len(origin):
+        raise LookingGlassError(f"{len(stems)} masks in {masks} but the camera file lists {len(origin)} views "
+                                "(it must list exactly the masked views)", cam_file)
+    photos = _photos_for(stems, mask_files, photo_files, images)
+    return [_PaperView(stem, photo, mask_files[stem][0], *(tuple(map(float, a[i])) for a in (origin, target, up)))
+            for i, (stem, photo) in enumerate(zip(stems, photos))]
+
+
+def _convert_view(view: _PaperView, folder: Path, size: tuple[int, int] | None, target_wh: tuple[int, int],
+                  first_photo: str, fov_x_deg: float) -> ViewSpec:
+    """Write the view's photo and mask into the scene folder `folder` at `target_wh` (W, H),
+    resized when `size` asks for it; returns its entry of scene.json."""
+    photo, mask_path = view.photo, view.mask
+    is_hdr = photo.suffix.lower() in HDR_SUFFIXES
+    img = read_image(photo, "srgb")  # (H, W, 3) linear
+    mask = read_mask(mask_path)      # (H, W) bool
+    (hi, wi), (hm, wm) = img.shape[:2], mask.shape
+    if (hi, wi) != (hm, wm):
+        hint = " (rotated: check the photo's EXIF orientation)" if (hi, wi) == (wm, hm) else ""
+        raise LookingGlassError(f"mask is {wm}x{hm} but its photo {photo.name} is {wi}x{hi}{hint}", mask_path)
+    if not mask.any():
+        raise LookingGlassError("mask is empty (no object pixel)", mask_path)
+    W, H = target_wh
+    if (wi, hi) != (W, H):
+        if size is None:
+            raise LookingGlassError(f"photo is {wi}x{hi} but {first_photo} is {W}x{H}; pass a size to "
+                                    "resize all views to one size", photo)
+        _check_aspect(wi, hi, W, H, photo)
+        img = cv2.resize(img, (W, H), interpolation=cv2.INTER_AREA)
+        mask = cv2.resize(mask.astype(np.float32), (W, H), interpolation=cv2.INTER_AREA) >= 0.5
+        if not mask.any():
+            raise LookingGlassError(f"mask is empty after resizing to {W}x{H}", mask_path)
+    image_rel = f"images/{view.stem}{'.exr' if is_hdr else '.png'}"
+    mask_rel = f"masks/{view.stem}.png"
+    write_image(folder / image_rel, img, encoding="srgb")
+    write_mask(folder / mask_rel, mask)
+    return ViewSpec(image=image_rel, mask=mask_rel, origin=view.origin, target=view.target, up=view.up,
+                    fov_x_deg=float(fov_x_deg))
+
+
+def _write_scene(folder: Path, views: list[_PaperView], envmap: Path, envmap_scale: float,
+                 size: tuple[int, int] | None, fov_x_deg: float) -> None:
+    """Write the scene folder: the views (in parallel, one per thread), the envmap, scene.json."""
+    first = read_raw(views[0].photo)[0].shape
+    target_wh = size or (first[1], first[0])
+    with ThreadPoolExecutor(max(1, min(8, len(views), os.cpu_count() or 1))) as pool:
+        specs = list(pool.map(lambda view: _convert_view(view, folder, size, target_wh, views[0].photo.name,
+                                                         fov_x_deg), views))
+    env_rel = f"envmap{envmap.suffix.lower()}"
+    shutil.copyfile(envmap, folder / env_rel)
+    save_scene(folder, SceneSpec(envmap=env_rel, envmap_scale=float(envmap_scale), image_encoding="srgb",
+                                 views=specs))
+
+
 def import_paper(cams: Path, images: Path, masks: Path, envmap: Path, out: Path, envmap_scale: float = 1.0,
                  fov_x_deg: float = PAPER_FOV_X_DEG, size: tuple[int, int] | None = None,
                  force: bool = False) -> Path:
@@ -154,102 +292,17 @@ def import_paper(cams: Path, images: Path, masks: Path, envmap: Path, out: Path,
     unless force. Inputs are only read.
     """
     cams, images, masks, envmap, out = (Path(p) for p in (cams, images, masks, envmap, out))
-    if not (np.isfinite(envmap_scale) and envmap_scale > 0):
-        raise LookingGlassError(f"envmap scale must be a positive number, got {envmap_scale}")
-    if not (np.isfinite(fov_x_deg) and 0 < fov_x_deg < 180):
-        raise LookingGlassError(f"fov_x must be in (0, 180) degrees, got {fov_x_deg}")
-    if size is not None:
-        if len(size) != 2 or any(int(s) != s or s <= 0 for s in size):
-            raise LookingGlassError(f"size must be two positive integers W H, got {size}")
-        size = (int(size[0]), int(size[1]))
-    if not envmap.is_file():
-        raise LookingGlassError("environment map not found" if not envmap.exists() else "not a file", envmap)
-    if envmap.suffix.lower() not in ENVMAP_SUFFIXES:
-        raise LookingGlassError(f"unsupported environment map type '{envmap.suffix}' (use .hdr, .exr, .png or .jpg)",
-                                envmap)
-    _refuse_dangerous_out(out, [cams, images, masks, envmap])
-    if out.exists():
-        if not out.is_dir():
-            raise LookingGlassError("output exists and is not a folder", out)
-        if any(out.iterdir()) and not force:
-            raise LookingGlassError("output folder is not empty (pass --force, or force=True, to replace it)", out)
-
-    cam_file = _find_camera_file(cams)
-    origin, target, up = read_paper_cameras(cam_file)
-    mask_files = _list_files(masks, MASK_SUFFIXES, "mask")
-    photo_files = _list_files(images, PHOTO_SUFFIXES, "image")
-    for stem, paths in mask_files.items():
-        if len(paths) > 1:
-            names = ", ".join(p.name for p in sorted(paths))
-            raise LookingGlassError(f"several masks share the stem '{stem}': {names}", masks)
-    stems = sorted(mask_files, key=natural_key)
-    if not stems:
-        raise LookingGlassError(f"no masks ({'/'.join(MASK_SUFFIXES)}) in this folder", masks)
-    if len(stems) != len(origin):
-        raise LookingGlassError(f"{len(stems)} masks in {masks} but the camera file lists {len(origin)} views "
-                                "(it must list exactly the masked views)", cam_file)
-
-    lower = {}
-    for stem, paths in photo_files.items():
-        lower.setdefault(stem.lower(), []).extend(paths)
-    photos: list[Path] = []
-    unmatched = []
-    for stem in stems:
-        cands = photo_files.get(stem) or lower.get(stem.lower(), [])
-        if not cands:
-            unmatched.append(stem)
-        elif len(cands) > 1:
-            raise LookingGlassError(f"several photos match the mask stem '{stem}': "
-                                    f"{', '.join(p.name for p in sorted(cands))}", images)
-        else:
-            photos.append(cands[0])
-    if unmatched:
-        shown = ", ".join(mask_files[s][0].name for s in unmatched[:5]) + (" ..." if len(unmatched) > 5 else "")
-        raise LookingGlassError(f"no photo in {images} for mask{'s' if len(unmatched) > 1 else ''} {shown} "
-                                "(photos are matched to masks by file stem)", mask_files[unmatched[0]][0])
+    size = _checked_size(envmap_scale, fov_x_deg, size)
+    _check_envmap_and_out(envmap, out, [cams, images, masks, envmap], force)
+    views = _paper_views(cams, images, masks)
     read_envmap(envmap, envmap_scale)  # NaN/inf, shape and sign checks, naming the file
 
     parent = out.resolve().parent
     parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.importing-", dir=parent))
     try:
-        first = read_raw(photos[0])[0].shape
-        target_wh = size or (first[1], first[0])
-
-        def convert(i: int) -> ViewSpec:
-            photo, mask_path = photos[i], mask_files[stems[i]][0]
-            is_hdr = photo.suffix.lower() in HDR_SUFFIXES
-            img = read_image(photo, "srgb")  # (H, W, 3) linear
-            mask = read_mask(mask_path)      # (H, W) bool
-            (hi, wi), (hm, wm) = img.shape[:2], mask.shape
-            if (hi, wi) != (hm, wm):
-                hint = " (rotated: check the photo's EXIF orientation)" if (hi, wi) == (wm, hm) else ""
-                raise LookingGlassError(f"mask is {wm}x{hm} but its photo {photo.name} is {wi}x{hi}{hint}", mask_path)
-            if not mask.any():
-                raise LookingGlassError("mask is empty (no object pixel)", mask_path)
-            W, H = target_wh
-            if (wi, hi) != (W, H):
-                if size is None:
-                    raise LookingGlassError(f"photo is {wi}x{hi} but {photos[0].name} is {W}x{H}; pass a size to "
-                                            "resize all views to one size", photo)
-                _check_aspect(wi, hi, W, H, photo)
-                img = cv2.resize(img, (W, H), interpolation=cv2.INTER_AREA)
-                mask = cv2.resize(mask.astype(np.float32), (W, H), interpolation=cv2.INTER_AREA) >= 0.5
-                if not mask.any():
-                    raise LookingGlassError(f"mask is empty after resizing to {W}x{H}", mask_path)
-            image_rel = f"images/{stems[i]}{'.exr' if is_hdr else '.png'}"
-            mask_rel = f"masks/{stems[i]}.png"
-            write_image(tmp / image_rel, img, encoding="srgb")
-            write_mask(tmp / mask_rel, mask)
-            o, t, u = (tuple(map(float, a[i])) for a in (origin, target, up))
-            return ViewSpec(image=image_rel, mask=mask_rel, origin=o, target=t, up=u, fov_x_deg=float(fov_x_deg))
-
-        with ThreadPoolExecutor(max(1, min(8, len(stems), os.cpu_count() or 1))) as pool:
-            views = list(pool.map(convert, range(len(stems))))
-        env_rel = f"envmap{envmap.suffix.lower()}"
-        shutil.copyfile(envmap, tmp / env_rel)
-        spec = SceneSpec(envmap=env_rel, envmap_scale=float(envmap_scale), image_encoding="srgb", views=views)
-        save_scene(tmp, spec)
+        os.chmod(tmp, usual_mode(directory=True))  # it becomes `out`: not mkdtemp's private 0o700
+        _write_scene(tmp, views, envmap, envmap_scale, size, fov_x_deg)
         load_capture(tmp)  # every scene-folder check, e.g. cameras that do not see the object
         _move_into_place(tmp, out, force)
     finally:

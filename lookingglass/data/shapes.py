@@ -24,8 +24,9 @@ import pymeshlab
 import trimesh
 from scipy import ndimage
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from skimage import measure
+
+from ..meshes import TAUBIN_LAMBDA, TAUBIN_MU, largest_component, orient_outward
 
 KINDS = ("ellipsoid", "box", "cylinder", "capsule", "torus", "plate", "rod")
 CARVE_KINDS = ("dent", "groove", "hole")
@@ -400,21 +401,6 @@ def _set_border(a: np.ndarray, value) -> None:
     a[0, :, :] = a[-1, :, :] = a[:, 0, :] = a[:, -1, :] = a[:, :, 0] = a[:, :, -1] = value
 
 
-def _largest_component(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The connected component with the most faces, with unused vertices dropped."""
-    n = len(vertices)
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
-    graph = coo_matrix((np.ones(len(e), dtype=np.int8), (e[:, 0], e[:, 1])), shape=(n, n))
-    ncomp, label = connected_components(graph, directed=False)
-    if ncomp > 1:
-        face_label = label[faces[:, 0]]
-        faces = faces[face_label == np.bincount(face_label).argmax()]
-    used = np.unique(faces)
-    remap = np.full(n, -1, dtype=np.int64)
-    remap[used] = np.arange(len(used))
-    return vertices[used], remap[faces]
-
-
 def _marching_cubes(solid: np.ndarray, axes) -> tuple[np.ndarray, np.ndarray]:
     """Zero set of a cleaned field: vertices (V, 3) float64 world, faces (F, 3) int64."""
     xs, ys, zs = axes
@@ -504,7 +490,7 @@ def _mesh_field(field_: np.ndarray, axes, field_at, config: ShapeConfig) -> trim
     solid = _keep_single_solid(field_, h)
     if solid is None:
         return None
-    verts, faces = _largest_component(*_marching_cubes(solid, axes))
+    verts, faces, _ = largest_component(*_marching_cubes(solid, axes))
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=verts, face_matrix=faces.astype(np.int32)))
     if len(faces) > config.max_faces:
@@ -512,7 +498,9 @@ def _mesh_field(field_: np.ndarray, axes, field_at, config: ShapeConfig) -> trim
                                                     preservenormal=True, qualitythr=0.5, autoclean=True)
     safe = ms.current_mesh().vertex_matrix().astype(np.float64)  # marching cubes: no self-intersections
     if config.taubin_steps > 0:  # evens out the marching-cubes triangle pattern before projecting
-        ms.apply_coord_taubin_smoothing(lambda_=0.5, mu=-0.53, stepsmoothnum=config.taubin_steps)
+        # MeshLab's Taubin, not meshes.taubin_smooth: the mesh is already in MeshLab here, and the
+        # two differ in rounding (~1e-9), which would change every shape a seed stands for.
+        ms.apply_coord_taubin_smoothing(lambda_=TAUBIN_LAMBDA, mu=TAUBIN_MU, stepsmoothnum=config.taubin_steps)
     m = ms.current_mesh()
     verts, faces = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
     if config.projection_steps > 0:
@@ -520,11 +508,10 @@ def _mesh_field(field_: np.ndarray, axes, field_at, config: ShapeConfig) -> trim
     verts = _undo_self_intersections(verts, safe, faces)
     if verts is None:
         return None
-    mesh = trimesh.Trimesh(verts, faces, process=False)
+    # outward normals: the marching-cubes winding depends on the field's sign convention
+    mesh = trimesh.Trimesh(verts, orient_outward(verts, faces), process=False)
     if len(mesh.faces) < config.min_faces or not mesh.is_watertight:
         return None
-    if mesh.volume < 0:  # make normals point outwards (marching-cubes winding depends on the sign)
-        mesh.invert()
     return mesh
 
 

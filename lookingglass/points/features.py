@@ -49,6 +49,7 @@ the first `in_features` columns).
 from __future__ import annotations
 
 import logging
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -251,6 +252,126 @@ def silhouette_counts(points, hull_normals, cameras: Cameras, mask,
     return torch.stack(columns, dim=1) if columns else p.new_zeros((p.shape[0], 0))
 
 
+class _ViewSamples(NamedTuple):
+    """What each view says about each point: (V, N, ...) float64 / bool, world frame."""
+
+    visible: Tensor  # (V, N) bool, V_v(p)
+    normal: Tensor   # (V, N, 3) N1 (meaningless where not visible)
+    error: Tensor    # (V, N)
+    tir: Tensor      # (V, N) bool
+    cos: Tensor      # (V, N) view cosine C_v
+
+
+class _Merged(NamedTuple):
+    """The per-point result of merging the views: (N, ...) float64, world frame."""
+
+    normal: Tensor  # (N, 3)
+    error: Tensor   # (N,)
+    tir: Tensor     # (N,)
+    cos: Tensor     # (N,)
+    chosen: Tensor  # (N,) int64 view index, -1 for none (and for AV)
+
+
+def _checked_inputs(points, hull_normals, cameras: Cameras, n1_cam, error, tir, mask):
+    """The inputs of `map_features` as CPU tensors, checked against each other.
+
+    Returns p (N, 3) and unit hull normals hn (N, 3) float64, the cameras in float64 on the CPU,
+    n1 (V, H, W, 3) and error (V, H, W) float64, tir and mask (V, H, W) bool. Raises ValueError
+    on a shape mismatch.
+    """
+    p = _as_cpu64(points).reshape(-1, 3)
+    hn = F.normalize(_as_cpu64(hull_normals).reshape(-1, 3), dim=-1)
+    if hn.shape != p.shape:
+        raise ValueError(f"hull_normals {tuple(hn.shape)} do not match points {tuple(p.shape)}")
+    cams = cameras.to(device="cpu", dtype=torch.float64)
+    V, H, W = cams.num_views, cams.height, cams.width
+    n1 = _as_cpu64(n1_cam)
+    err = _as_cpu64(error)
+    tir_map = _as_cpu_bool(tir)
+    obj = _as_cpu_bool(mask)
+    for name, arr, shape in (("n1_cam", n1, (V, H, W, 3)), ("error", err, (V, H, W)),
+                             ("tir", tir_map, (V, H, W)), ("mask", obj, (V, H, W))):
+        if tuple(arr.shape) != shape:
+            raise ValueError(f"{name} has shape {tuple(arr.shape)}, expected {shape} "
+                             f"(V views at the cameras' {W}x{H})")
+    return p, hn, cams, n1, err, tir_map, obj
+
+
+def _visibility(p: Tensor, cams: Cameras, obj: Tensor, hull_mesh: trimesh.Trimesh | RayCaster,
+                occlusion_tolerance: float) -> tuple[Tensor, Tensor]:
+    """V_v(p): in front of the camera, inside the image, inside the mask (nearest pixel) and not
+    occluded by the hull. p: (N, 3); obj: (V, H, W) bool. Returns the projections xy (V, N, 2) and
+    visible (V, N) bool."""
+    V, H, W = obj.shape
+    xy, depth = cams.project(p)  # (V, N, 2), (V, N)
+    x, y = xy[..., 0], xy[..., 1]
+    inside = (depth > 0) & (x >= 0) & (x < W) & (y >= 0) & (y < H)  # NaN compares False
+    col = torch.nan_to_num(x, nan=0.0).floor().clamp(0, W - 1).long()
+    row = torch.nan_to_num(y, nan=0.0).floor().clamp(0, H - 1).long()
+    in_mask = obj[torch.arange(V)[:, None], row, col] & inside
+    # the occlusion test casts rays only for the points that passed the cheap tests
+    if isinstance(hull_mesh, RayCaster):
+        caster, extents = hull_mesh, hull_mesh.mesh.extents
+    else:
+        caster, extents = RayCaster(hull_mesh), hull_mesh.extents
+    tolerance = float(occlusion_tolerance) * float(np.linalg.norm(extents))
+    return xy, _unoccluded(caster, cams.origin, p, in_mask, tolerance)
+
+
+def _view_samples(p: Tensor, hn: Tensor, cams: Cameras, xy: Tensor, visible: Tensor, n1: Tensor,
+                  err: Tensor, tir_map: Tensor, obj: Tensor) -> _ViewSamples:
+    """Per view and point: N1 (world), error and TIR fetched mask-weighted bilinear at the
+    projections xy (V, N, 2), and the view cosine; see `_checked_inputs` for the maps' shapes."""
+    W, H = cams.width, cams.height
+    m = obj.to(torch.float64)
+    n1_world = cams.camera_to_world(n1)  # (V, H, W, 3)
+    # one fetch for all maps: the mask-weighted values and, last, the weights (the mask) themselves
+    stack = torch.cat([n1_world * m[..., None], (torch.nan_to_num(err) * m)[..., None],
+                       (tir_map.to(torch.float64) * m)[..., None], m[..., None]], dim=-1)
+    taps = _fetch(stack.permute(0, 3, 1, 2).contiguous(), xy, W, H)  # (V, N, 6)
+    weight = taps[..., 5].clamp_min(1e-12)
+    to_cam = F.normalize(cams.origin[:, None, :] - p[None], dim=-1)
+    return _ViewSamples(
+        visible=visible,
+        normal=F.normalize(taps[..., 0:3], dim=-1),  # the weight's scale drops out
+        error=taps[..., 3] / weight,
+        tir=taps[..., 4] / weight > 0.5,
+        cos=(to_cam * hn[None]).sum(-1))
+
+
+def _merge_average(views: _ViewSamples, hn: Tensor) -> _Merged:
+    """AV: the mean over the visible views (N1 re-normalized); unseen points keep the hull normal
+    and the UNSEEN_* values."""
+    count = views.visible.sum(0)
+    seen = count > 0
+    w = views.visible.to(torch.float64)
+    denom = count.clamp_min(1).to(torch.float64)
+    total = (w[..., None] * views.normal).sum(0)
+    ok = seen & (total.norm(dim=-1) > 1e-9)  # opposite normals could cancel exactly
+    return _Merged(
+        normal=torch.where(ok[:, None], F.normalize(total, dim=-1), hn),
+        error=torch.where(seen, (w * views.error).sum(0) / denom, torch.full_like(denom, UNSEEN_ERROR)),
+        tir=torch.where(seen, (w * views.tir).sum(0) / denom, torch.full_like(denom, UNSEEN_TIR)),
+        cos=torch.where(seen, (w * views.cos).sum(0) / denom, torch.full_like(denom, UNSEEN_COS)),
+        chosen=torch.full((len(hn),), -1, dtype=torch.long))
+
+
+def _merge_chosen(views: _ViewSamples, hn: Tensor, chosen: Tensor) -> _Merged:
+    """NE / RE: the values of the chosen view (N,) per point; points with none (-1) keep the hull
+    normal and the UNSEEN_* values."""
+    N = len(hn)
+    has = chosen >= 0
+    idx = chosen.clamp_min(0)
+    pick = lambda a: a[idx, torch.arange(N)]  # noqa: E731 - (V, N, ...) -> (N, ...)
+    unseen = lambda value: torch.full((N,), value, dtype=torch.float64)  # noqa: E731
+    return _Merged(
+        normal=torch.where(has[:, None], pick(views.normal), hn),
+        error=torch.where(has, pick(views.error), unseen(UNSEEN_ERROR)),
+        tir=torch.where(has, pick(views.tir).to(torch.float64), unseen(UNSEEN_TIR)),
+        cos=torch.where(has, pick(views.cos), unseen(UNSEEN_COS)),
+        chosen=chosen)
+
+
 def map_features(points, hull_normals, hull_mesh: trimesh.Trimesh | RayCaster, cameras: Cameras,
                  n1_cam, error, tir, mask, strategy: str = "RE",
                  occlusion_tolerance: float = 0.01) -> dict[str, Tensor]:
@@ -284,94 +405,33 @@ def map_features(points, hull_normals, hull_mesh: trimesh.Trimesh | RayCaster, c
     if strategy not in STRATEGIES:
         raise ValueError(f"unknown feature-mapping strategy {strategy!r}; use one of {STRATEGIES}")
     device = points.device if isinstance(points, Tensor) else torch.device("cpu")
-    p = _as_cpu64(points).reshape(-1, 3)
-    hn = F.normalize(_as_cpu64(hull_normals).reshape(-1, 3), dim=-1)
-    if hn.shape != p.shape:
-        raise ValueError(f"hull_normals {tuple(hn.shape)} do not match points {tuple(p.shape)}")
-    cams = cameras.to(device="cpu", dtype=torch.float64)
-    V, H, W = cams.num_views, cams.height, cams.width
-    n1 = _as_cpu64(n1_cam)
-    err = _as_cpu64(error)
-    tir_map = _as_cpu_bool(tir)
-    obj = _as_cpu_bool(mask)
-    for name, arr, shape in (("n1_cam", n1, (V, H, W, 3)), ("error", err, (V, H, W)),
-                             ("tir", tir_map, (V, H, W)), ("mask", obj, (V, H, W))):
-        if tuple(arr.shape) != shape:
-            raise ValueError(f"{name} has shape {tuple(arr.shape)}, expected {shape} "
-                             f"(V views at the cameras' {W}x{H})")
-    N = p.shape[0]
-
-    # ---- projection and the cheap visibility tests -------------------------------------------
-    xy, depth = cams.project(p)  # (V, N, 2), (V, N)
-    x, y = xy[..., 0], xy[..., 1]
-    inside = (depth > 0) & (x >= 0) & (x < W) & (y >= 0) & (y < H)  # NaN compares False
-    col = torch.nan_to_num(x, nan=0.0).floor().clamp(0, W - 1).long()
-    row = torch.nan_to_num(y, nan=0.0).floor().clamp(0, H - 1).long()
-    in_mask = obj[torch.arange(V)[:, None], row, col] & inside
-
-    # ---- occlusion against the hull ----------------------------------------------------------
-    if isinstance(hull_mesh, RayCaster):
-        caster, extents = hull_mesh, hull_mesh.mesh.extents
-    else:
-        caster, extents = RayCaster(hull_mesh), hull_mesh.extents
-    tolerance = float(occlusion_tolerance) * float(np.linalg.norm(extents))
-    visible = _unoccluded(caster, cams.origin, p, in_mask, tolerance)
-
-    # ---- fetches: N1 (world), error, TIR, all mask-weighted bilinear -------------------------
-    m = obj.to(torch.float64)
-    n1_world = cams.camera_to_world(n1)  # (V, H, W, 3)
-    stack = torch.cat([n1_world * m[..., None], (torch.nan_to_num(err) * m)[..., None],
-                       (tir_map.to(torch.float64) * m)[..., None], m[..., None]], dim=-1)
-    taps = _fetch(stack.permute(0, 3, 1, 2).contiguous(), xy, W, H)  # (V, N, 6)
-    weight = taps[..., 5].clamp_min(1e-12)
-    view_normal = F.normalize(taps[..., 0:3], dim=-1)  # the weight's scale drops out
-    view_error = taps[..., 3] / weight
-    view_tir = taps[..., 4] / weight > 0.5
-    to_cam = F.normalize(cams.origin[:, None, :] - p[None], dim=-1)
-    view_cos = (to_cam * hn[None]).sum(-1)
-
-    # ---- merge views ---------------------------------------------------------------------------
-    count = visible.sum(0)
-    seen = count > 0
+    p, hn, cams, n1, err, tir_map, obj = _checked_inputs(points, hull_normals, cameras, n1_cam, error, tir, mask)
+    xy, visible = _visibility(p, cams, obj, hull_mesh, occlusion_tolerance)
+    views = _view_samples(p, hn, cams, xy, visible, n1, err, tir_map, obj)
     if strategy == "AV":
-        w = visible.to(torch.float64)
-        denom = count.clamp_min(1).to(torch.float64)
-        total = (w[..., None] * view_normal).sum(0)
-        ok = seen & (total.norm(dim=-1) > 1e-9)  # opposite normals could cancel exactly
-        normal = torch.where(ok[:, None], F.normalize(total, dim=-1), hn)
-        err_out = torch.where(seen, (w * view_error).sum(0) / denom, torch.full_like(denom, UNSEEN_ERROR))
-        tir_out = torch.where(seen, (w * view_tir).sum(0) / denom, torch.full_like(denom, UNSEEN_TIR))
-        cos_out = torch.where(seen, (w * view_cos).sum(0) / denom, torch.full_like(denom, UNSEEN_COS))
-        chosen = torch.full((N,), -1, dtype=torch.long)
+        merged = _merge_average(views, hn)
+    elif strategy == "NE":
+        merged = _merge_chosen(views, hn, select_nearest(visible, views.cos))
     else:
-        if strategy == "NE":
-            chosen = select_nearest(visible, view_cos)
-        else:
-            chosen = select_rendering_error(visible, view_error, view_tir, view_cos)
-        has = chosen >= 0
-        idx = chosen.clamp_min(0)
-        pick = lambda a: a[idx, torch.arange(N)]  # noqa: E731 - (V, N, ...) -> (N, ...)
-        normal = torch.where(has[:, None], pick(view_normal), hn)
-        err_out = torch.where(has, pick(view_error), torch.full((N,), UNSEEN_ERROR, dtype=torch.float64))
-        tir_out = torch.where(has, pick(view_tir).to(torch.float64),
-                              torch.full((N,), UNSEEN_TIR, dtype=torch.float64))
-        cos_out = torch.where(has, pick(view_cos), torch.full((N,), UNSEEN_COS, dtype=torch.float64))
+        merged = _merge_chosen(views, hn, select_rendering_error(visible, views.error, views.tir, views.cos))
 
+    count = visible.sum(0)
     cones = silhouette_counts(p, hn, cams, obj)
-    features = torch.cat([p, hn, normal, err_out[:, None], tir_out[:, None], cos_out[:, None], cones], dim=1)
+    features = torch.cat([p, hn, merged.normal, merged.error[:, None], merged.tir[:, None], merged.cos[:, None],
+                          cones], dim=1)
     f32 = lambda a: a.to(device=device, dtype=torch.float32)  # noqa: E731
     return {
-        "normal": f32(normal),
-        "error": f32(err_out),
-        "tir": f32(tir_out),
-        "cos": f32(cos_out),
+        "normal": f32(merged.normal),
+        "error": f32(merged.error),
+        "tir": f32(merged.tir),
+        "cos": f32(merged.cos),
         "visible_count": count.to(device),
-        "chosen_view": chosen.to(device),
-        "seen": seen.to(device),
+        "chosen_view": merged.chosen.to(device),
+        "seen": (count > 0).to(device),
         "features": f32(features),
         "view_visible": visible.to(device),
-        "view_normal": f32(view_normal),
-        "view_error": f32(view_error),
-        "view_tir": view_tir.to(device),
-        "view_cos": f32(view_cos),
+        "view_normal": f32(views.normal),
+        "view_error": f32(views.error),
+        "view_tir": views.tir.to(device),
+        "view_cos": f32(views.cos),
     }
