@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from ..errors import LookingGlassError
+from ..physics.constants import PAPER_CAPTURE_FOV_X_DEG as PAPER_FOV_X_DEG
 from ..fileio import usual_mode
 from .images import HDR_SUFFIXES, read_envmap, read_image, read_mask, read_raw, write_image, write_mask
 from .scene import SCENE_FILE, SceneSpec, ViewSpec, load_capture, save_scene
@@ -37,7 +38,6 @@ from .scene import SCENE_FILE, SceneSpec, ViewSpec, load_capture, save_scene
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
 MASK_SUFFIXES = (".png", ".jpg", ".jpeg")
 ENVMAP_SUFFIXES = (".hdr", ".exr", ".png", ".jpg", ".jpeg")
-from ..physics.constants import PAPER_CAPTURE_FOV_X_DEG as PAPER_FOV_X_DEG  # noqa: E402
 MAX_ASPECT_ERROR_PX = 0.5
 
 
