@@ -1,0 +1,208 @@
+"""A validation set of shapes unlike the procedural training shapes, rendered like users' captures.
+
+The training shapes are smooth unions of random primitives carved at 128x96. Users bring scanned
+figurines and manufactured parts photographed at full resolution, where the visual hull is
+already good. This set stands in for them: each shape is built here (no download), by name, from
+one of four families, and rendered at 480x360 from the paper's 10-view rig under the natural maps
+kept out of training, with 16 samples per pixel.
+
+Families:
+  cad     flat faces and sharp edges (CSG of boxes, prisms and cylinders)
+  handle  a body with a thin handle (genus 1, a slit the hull cannot see into)
+  thin    thin plates and rods beside a body
+  blob    smooth figurine-like solids (few concavities: the hull is nearly right)
+
+Sharp edges: the renderer shades with smooth vertex normals (tracer.py), so CAD meshes are
+subdivided to edges of `EDGE` (in the unit sphere) first; a crease is then rounded over one
+small triangle, like the bevel of a real part, and its faces stay flat.
+
+Layout of OUT (resumable: a finished scene is skipped):
+  OUT/index.json                 {"shapes": {name: family}, "views", "size", "samples_per_axis"}
+  OUT/<name>/scene/              a scene folder (scene.json, images/*.exr, masks/*.png, envmap.hdr)
+  OUT/<name>/ground_truth.ply    the shape, world frame (unit sphere)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import trimesh
+
+from ..errors import LookingGlassError
+from ..fileio import write_atomic, write_json
+from ..progress import Reporter
+from .shapes import normalize_to_unit_sphere
+
+EDGE = 0.03  # longest edge of the rendered CAD meshes, unit-sphere frame
+TEST_ENVMAPS = ("forest_slope_1k.hdr", "potsdamer_platz_1k.hdr")  # never lit a training scene
+
+
+def _boolean(op: str, meshes: list[trimesh.Trimesh]) -> trimesh.Trimesh:
+    fn = {"union": trimesh.boolean.union, "difference": trimesh.boolean.difference,
+          "intersection": trimesh.boolean.intersection}[op]
+    return fn(meshes, engine="manifold")
+
+
+def _moved(mesh: trimesh.Trimesh, offset=(0, 0, 0), axis=None, angle=0.0) -> trimesh.Trimesh:
+    """A copy rotated by `angle` (radians) about `axis`, then moved by `offset`."""
+    mesh = mesh.copy()
+    if axis is not None:
+        mesh.apply_transform(trimesh.transformations.rotation_matrix(angle, axis))
+    mesh.apply_translation(offset)
+    return mesh
+
+
+def _cylinder(radius: float, height: float, axis=(0, 0, 1), sections: int = 96, offset=(0, 0, 0)):
+    """A cylinder along `axis` ('x', 'y' or 'z' as a unit vector), centred at `offset`."""
+    cyl = trimesh.creation.cylinder(radius, height, sections=sections)
+    axis = np.asarray(axis, float)
+    if not np.allclose(axis, (0, 0, 1)):
+        cyl.apply_transform(trimesh.geometry.align_vectors((0, 0, 1), axis))
+    return _moved(cyl, offset)
+
+
+def bracket() -> trimesh.Trimesh:
+    """An L-bracket with a bolt hole through its foot: flat faces, a concave corner, genus 1."""
+    foot = trimesh.creation.box((1.6, 0.3, 1.0))
+    wall = _moved(trimesh.creation.box((0.3, 1.2, 1.0)), (-0.65, 0.45, 0))
+    return _boolean("difference", [_boolean("union", [foot, wall]), _cylinder(0.18, 1.0, (0, 1, 0), offset=(0.35, 0, 0))])
+
+
+def nut() -> trimesh.Trimesh:
+    """A hexagonal nut: six flat sides, sharp rims, a round hole (genus 1)."""
+    prism = trimesh.creation.cylinder(1.0, 0.7, sections=6)
+    return _boolean("difference", [prism, _cylinder(0.42, 1.0)])
+
+
+def chamfered_cube() -> trimesh.Trimesh:
+    """A cube with its twelve edges chamfered (the cube cut by three boxes turned 45 degrees)."""
+    parts = [trimesh.creation.box((1.0, 1.0, 1.0))]
+    for axis in ((1, 0, 0), (0, 1, 0), (0, 0, 1)):
+        parts.append(_moved(trimesh.creation.box((1.25, 1.25, 1.25)), axis=axis, angle=np.pi / 4))
+    return _boolean("intersection", parts)
+
+
+def stepped_shaft() -> trimesh.Trimesh:
+    """A turned part: a wide disc on a narrower shaft, a concave step between them."""
+    return _boolean("union", [_cylinder(0.8, 0.4, offset=(0, 0, -0.3)), _cylinder(0.4, 1.4, offset=(0, 0, 0.2))])
+
+
+def mug() -> trimesh.Trimesh:
+    """A solid cylinder with a thin ring handle on its side (genus 1)."""
+    body = _cylinder(0.55, 1.3, (0, 1, 0))
+    handle = _moved(trimesh.creation.torus(0.38, 0.09, major_sections=96, minor_sections=24), (0.6, 0, 0),
+                    axis=(1, 0, 0), angle=np.pi / 2)
+    return _boolean("union", [body, handle])
+
+
+def key() -> trimesh.Trimesh:
+    """A key: a ring bow and a long thin blade with teeth."""
+    bow = _moved(trimesh.creation.torus(0.35, 0.1, major_sections=96, minor_sections=24), (-0.75, 0, 0))
+    blade = _moved(trimesh.creation.box((1.3, 0.16, 0.12)), (0.2, 0, 0))
+    teeth = [_moved(trimesh.creation.box((0.1, 0.18, 0.12)), (0.3 + 0.2 * k, -0.14, 0)) for k in range(3)]
+    return _boolean("union", [bow, blade, *teeth])
+
+
+def finned_body() -> trimesh.Trimesh:
+    """A capsule with two thin fins (plates 0.06 thick) standing off it."""
+    body = trimesh.creation.capsule(1.0, 0.35, count=[48, 48])
+    fins = [_moved(trimesh.creation.box((0.06, 0.9, 0.9)), (0, 0.4 * s, 0), axis=(0, 0, 1), angle=s * 0.5)
+            for s in (-1, 1)]
+    return _boolean("union", [body, *fins])
+
+
+def _blob(ellipsoids: list[tuple[tuple, tuple]], blend: float = 0.12, resolution: int = 144) -> trimesh.Trimesh:
+    """A smooth union (polynomial smooth minimum, width `blend`) of ellipsoids ((centre), (radii)),
+    meshed by marching cubes on a grid over [-1.3, 1.3]^3."""
+    from skimage.measure import marching_cubes
+
+    axis = np.linspace(-1.3, 1.3, resolution)
+    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
+    field = None
+    for centre, radii in ellipsoids:
+        q = np.sqrt(sum(((c - o) / r) ** 2 for c, o, r in zip((x, y, z), centre, radii)))
+        d = (q - 1) * min(radii)  # a distance bound, good enough for a smooth union
+        if field is None:
+            field = d
+        else:
+            h = np.clip(0.5 + 0.5 * (d - field) / blend, 0, 1)
+            field = d * (1 - h) + field * h - blend * h * (1 - h)
+    step = axis[1] - axis[0]
+    verts, faces, _, _ = marching_cubes(field, 0.0, spacing=(step,) * 3, allow_degenerate=False)
+    mesh = trimesh.Trimesh(verts - 1.3, faces, process=True)
+    if mesh.volume < 0:
+        mesh.invert()
+    trimesh.smoothing.filter_taubin(mesh, iterations=10)
+    return mesh
+
+
+def seated_figure() -> trimesh.Trimesh:
+    """A sitting animal: body, head, two ears, a tail."""
+    return _blob([((0, -0.2, 0), (0.55, 0.5, 0.45)), ((0, 0.45, 0.1), (0.33, 0.3, 0.3)),
+                  ((-0.18, 0.75, 0.05), (0.09, 0.16, 0.07)), ((0.18, 0.75, 0.05), (0.09, 0.16, 0.07)),
+                  ((0, -0.55, -0.45), (0.12, 0.1, 0.3))])
+
+
+def pebble() -> trimesh.Trimesh:
+    """A flattened, slightly lopsided pebble: convex, the hull's easiest case."""
+    return _blob([((0, 0, 0), (0.9, 0.45, 0.65)), ((0.3, 0.05, 0.1), (0.5, 0.4, 0.45))], blend=0.3)
+
+
+def duck() -> trimesh.Trimesh:
+    """A bath duck: a body, a head on a neck, a flat beak."""
+    return _blob([((0, -0.25, 0), (0.7, 0.4, 0.5)), ((0.3, 0.35, 0), (0.3, 0.3, 0.28)),
+                  ((0.62, 0.3, 0), (0.2, 0.06, 0.12)), ((-0.6, -0.05, 0), (0.2, 0.18, 0.2))])
+
+
+SHAPES: dict[str, tuple[str, Callable[[], trimesh.Trimesh]]] = {
+    "bracket": ("cad", bracket), "nut": ("cad", nut), "chamfered_cube": ("cad", chamfered_cube),
+    "stepped_shaft": ("cad", stepped_shaft), "mug": ("handle", mug), "key": ("handle", key),
+    "finned_body": ("thin", finned_body), "seated_figure": ("blob", seated_figure), "pebble": ("blob", pebble),
+    "duck": ("blob", duck),
+}
+
+
+def validation_shape(name: str, seed: int = 0) -> trimesh.Trimesh:
+    """Shape `name` in the unit sphere (max |p| = 1), turned by a seeded random rotation (so no
+    face lines up with the rig), watertight, outward, edges at most EDGE long."""
+    if name not in SHAPES:
+        raise LookingGlassError(f"unknown validation shape {name!r} (choose from {', '.join(SHAPES)})")
+    mesh = SHAPES[name][1]()
+    rotation = trimesh.transformations.random_rotation_matrix(np.random.default_rng([seed, len(name)]).random(3))
+    mesh.apply_transform(rotation)
+    mesh = normalize_to_unit_sphere(mesh)
+    vertices, faces = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=EDGE)
+    mesh = trimesh.Trimesh(vertices, faces, process=True)
+    if not mesh.is_watertight or mesh.volume <= 0:
+        raise LookingGlassError(f"validation shape {name} is not a closed, outward surface (a CSG failure)")
+    return mesh
+
+
+def generate_validation_set(out, names: list[str] | None = None, views: int = 10, size=(480, 360),
+                            samples_per_axis: int = 4, seed: int = 0, envmap_folder=None,
+                            reporter: Reporter | None = None) -> Path:
+    """Render the validation shapes (all, or `names`) into OUT (see the module docstring);
+    finished scenes are kept. Returns OUT/index.json."""
+    from ..capture.images import read_envmap
+    from ..render.tracer import RenderConfig
+    from .envmaps import default_envmap_folder
+    from .rigs import paper_rig
+    from .synthetic import render_capture
+
+    out, reporter = Path(out), reporter or Reporter(quiet=True)
+    names = list(SHAPES) if names is None else names
+    folder = Path(envmap_folder) if envmap_folder is not None else default_envmap_folder()
+    for k, name in enumerate(reporter.track(names, description="validation scenes")):
+        scene_dir = out / name
+        if (scene_dir / "ground_truth.ply").exists() and (scene_dir / "scene" / "scene.json").exists():
+            continue
+        mesh = validation_shape(name, seed)
+        env = read_envmap(folder / TEST_ENVMAPS[k % len(TEST_ENVMAPS)])
+        cameras = paper_rig(views, seed + k, width=size[0], height=size[1])
+        render_capture(mesh, env, cameras, scene_dir / "scene", RenderConfig(samples_per_axis=samples_per_axis,
+                                                                            seed=seed + k), overwrite=True)
+        write_atomic(scene_dir / "ground_truth.ply", lambda p, m=mesh: m.export(p, file_type="ply"))
+    return write_json(out / "index.json", {"shapes": {n: SHAPES[n][0] for n in names}, "views": views,
+                                           "size": list(size), "samples_per_axis": samples_per_axis, "seed": seed})
