@@ -1,0 +1,146 @@
+"""`reconstruct` on captures with a known ground truth, scored against the visual hull.
+
+This is how a change is judged on inputs like users' (data/validation.py makes such a set): every
+scene is reconstructed by `reconstruct` itself, with the given config, and for each one the hull
+and the final mesh are scored against the ground truth (CD, Metro, CDN-mean, CDN-med), and the
+normal stage's maps against the ground truth's two-bounce normals (N1 over the object, N2 where
+the true path has exactly two interfaces) beside the hull's own, with both render errors. A
+network earns its place where its figure is below the hull's.
+
+OUT/<name>/ holds each scene's `reconstruct` output (a finished one is reused when its config is
+the same, so an interrupted run resumes); OUT/validation.json the records and family means.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .capture.scene import load_capture
+from .config import PipelineConfig, config_to_dict
+from .errors import LookingGlassError
+from .fileio import write_json
+from .metrics import load_mesh, shape_metrics
+from .pipeline import reconstruct
+from .progress import Reporter
+from .render.tracer import trace_two_bounce
+
+SHAPE_METRICS = ("cd", "metro", "cdn_mean", "cdn_med")
+
+
+def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Degrees between rows of (N, 3) vectors."""
+    a = a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-12)
+    b = b / np.maximum(np.linalg.norm(b, axis=-1, keepdims=True), 1e-12)
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), (a * b).sum(-1)))
+
+
+def normal_errors(result_dir: Path, capture, gt, hull) -> dict:
+    """Median angle errors of the hull's and the predicted N1 and N2 against the ground truth's,
+    at the network's resolution (OUT/normals/view_XX.npz), and the two render errors."""
+    views = sorted((result_dir / "normals").glob("view_*.npz"))
+    if not views:
+        return {}
+    maps = [np.load(p) for p in views]
+    H, W = maps[0]["mask"].shape
+    cams = capture.cameras.with_resolution(W, H)
+    truth, ours = trace_two_bounce(gt, cams, ior=capture.ior), trace_two_bounce(hull, cams, ior=capture.ior)
+    mask = np.stack([m["mask"] for m in maps]) & truth.mask.numpy()
+    two = mask & truth.valid.numpy()
+    out = {}
+    for name, n1, n2 in (("hull", ours.normal1.numpy(), ours.normal2.numpy()),
+                         ("pred", np.stack([m["n1"] for m in maps]), np.stack([m["n2"] for m in maps]))):
+        out[f"n1_median_{name}"] = float(np.median(_angles(n1[mask], truth.normal1.numpy()[mask])))
+        out[f"n2_median_{name}"] = float(np.median(_angles(n2[two], truth.normal2.numpy()[two])))
+    report = json.loads((result_dir / "report.json").read_text())
+    stage = next((s for s in report["stages"] if s["name"] == "normals"), {})
+    out["render_error_hull"], out["render_error_pred"] = stage.get("render_error_vh"), stage.get("render_error")
+    return out
+
+
+def _reconstructed(scene: Path, out: Path, config: PipelineConfig, reporter: Reporter) -> None:
+    """Run `reconstruct` into OUT unless a finished run with the same config is there."""
+    report = out / "report.json"
+    if report.exists() and (out / "mesh.ply").exists():
+        try:
+            if json.loads(report.read_text()).get("config") == config_to_dict(config):
+                return
+        except ValueError:
+            pass
+    reconstruct(scene, out, config, force=True, reporter=reporter)
+
+
+def evaluate_validation_set(root, out, config: PipelineConfig | None = None, names: list[str] | None = None,
+                            reporter: Reporter | None = None) -> dict:
+    """Reconstruct and score every scene of ROOT (data/validation.py's layout: ROOT/index.json,
+    ROOT/<name>/scene/, ROOT/<name>/ground_truth.ply); returns and writes OUT/validation.json:
+    {"scenes": [{"name", "family", "hull": metrics, "mesh": metrics, "mesh_from", normal errors}],
+    "families": {family: means}}."""
+    root, out = Path(root), Path(out)
+    reporter = reporter or Reporter(quiet=True)
+    try:
+        index = json.loads((root / "index.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise LookingGlassError(f"not a validation set ({exc}); make one with generate-validation",
+                                root / "index.json") from None
+    names = names or list(index["shapes"])
+    config = config or PipelineConfig(device="cpu")
+    records = []
+    for name in reporter.track(names, description="validation scenes"):
+        scene = root / name / "scene"
+        _reconstructed(scene, out / name, config, Reporter(quiet=True))
+        gt = load_mesh(root / name / "ground_truth.ply")
+        hull = load_mesh(out / name / "visual_hull.ply")
+        report = json.loads((out / name / "report.json").read_text())
+        record = {"name": name, "family": index["shapes"].get(name, "?"), "mesh_from": report["mesh_from"],
+                  "hull": shape_metrics(hull, gt), "mesh": shape_metrics(load_mesh(out / name / "mesh.ply"), gt),
+                  "seconds": report["total_seconds"]}
+        with torch.inference_mode():
+            record.update(normal_errors(out / name, load_capture(scene), gt, hull))
+        records.append(record)
+    result = {"config": config_to_dict(config), "scenes": records, "families": family_means(records)}
+    write_json(out / "validation.json", result)
+    return result
+
+
+def family_means(records: list[dict]) -> dict:
+    """Per family (and "all"): mean of every figure over its scenes, and the share of scenes whose
+    mesh has a lower CD than its hull."""
+    groups: dict[str, list[dict]] = {}
+    for r in records:
+        groups.setdefault(r["family"], []).append(r)
+    groups["all"] = records
+    means = {}
+    for family, rs in groups.items():
+        row = {f"{k}_{m}": float(np.mean([r[k][m] for r in rs])) for k in ("hull", "mesh") for m in SHAPE_METRICS}
+        for key in ("n1_median_hull", "n1_median_pred", "n2_median_hull", "n2_median_pred", "render_error_hull",
+                    "render_error_pred"):
+            values = [r[key] for r in rs if r.get(key) is not None]
+            if values:
+                row[key] = float(np.mean(values))
+        row["mesh_better_cd"] = sum(r["mesh"]["cd"] < r["hull"]["cd"] for r in rs) / len(rs)
+        row["scenes"] = len(rs)
+        means[family] = row
+    return means
+
+
+def markdown_table(result: dict) -> str:
+    """One row per scene and per family: the hull's figure, the result's, and their ratio."""
+    def pair(h, m):
+        return f"{h:.2f} / {m:.2f} ({m / h:.2f}x)" if h and m is not None else ""
+
+    lines = ["| scene | family | CD hull / mesh | CDN-mean hull / mesh | Metro hull / mesh | N1 median hull / pred | "
+             "N2 median hull / pred |", "|---|---|---|---|---|---|---|"]
+    rows = [(r["name"], r["family"], r["hull"]["cd"], r["mesh"]["cd"], r["hull"]["cdn_mean"], r["mesh"]["cdn_mean"],
+             r["hull"]["metro"], r["mesh"]["metro"], r.get("n1_median_hull"), r.get("n1_median_pred"),
+             r.get("n2_median_hull"), r.get("n2_median_pred")) for r in result["scenes"]]
+    rows += [(f"**{f}**", f"{m['scenes']} scenes", m["hull_cd"], m["mesh_cd"], m["hull_cdn_mean"], m["mesh_cdn_mean"],
+              m["hull_metro"], m["mesh_metro"], m.get("n1_median_hull"), m.get("n1_median_pred"),
+              m.get("n2_median_hull"), m.get("n2_median_pred")) for f, m in result["families"].items()]
+    for name, family, *v in rows:
+        lines.append(f"| {name} | {family} | {pair(v[0], v[1])} | {pair(v[2], v[3])} | {pair(v[4], v[5])} | "
+                     f"{pair(v[6], v[7]) if v[6] is not None else ''} | {pair(v[8], v[9]) if v[8] is not None else ''} |")
+    return "\n".join(lines)

@@ -1,0 +1,64 @@
+"""The validation set of non-procedural shapes and `reconstruct` scored on it against the hull."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from lookingglass.config import PipelineConfig
+from lookingglass.data.validation import EDGE, SHAPES, generate_validation_set, validation_shape
+from lookingglass.errors import LookingGlassError
+from lookingglass.metrics import load_mesh, shape_metrics
+from lookingglass.validate import evaluate_validation_set, markdown_table
+from lookingglass.weights import shipped_weights
+
+GENUS = {"bracket": 1, "nut": 1, "mug": 1, "key": 1}  # the others are genus 0
+
+
+@pytest.mark.parametrize("name", list(SHAPES))
+def test_shapes_are_closed_unit_solids_of_their_topology(name):
+    mesh = validation_shape(name)
+    assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
+    assert np.linalg.norm(mesh.vertices, axis=1).max() == pytest.approx(1.0, abs=1e-9)
+    assert round(mesh.body_count - mesh.euler_number / 2) == GENUS.get(name, 0)
+    assert mesh.edges_unique_length.max() <= EDGE * (1 + 1e-9)
+
+
+def test_cad_faces_are_flat():
+    """The nut's six sides and two rims are planes: most of its area faces one of 8 directions
+    (the smooth-shaded bevels and the hole's wall take the rest)."""
+    mesh = validation_shape("nut")
+    normals, area = mesh.face_normals, mesh.area_faces
+    # cluster by direction: the area within 1 degree of the 8 most common face normals
+    keys, inverse = np.unique(np.round(normals, 3), axis=0, return_inverse=True)
+    top = np.sort(np.bincount(inverse.ravel(), weights=area))[::-1][:8].sum()
+    assert top / area.sum() > 0.6
+
+
+def test_unknown_shape_is_refused():
+    with pytest.raises(LookingGlassError, match="unknown validation shape"):
+        validation_shape("teapot")
+
+
+@pytest.mark.skipif(shipped_weights(5)[0] is None, reason="no normal-network weights ship in this build")
+def test_reconstruct_scored_against_the_hull(tmp_path):
+    """One small scene: the scores are the metrics of reconstruct's own files, the normal errors
+    are finite and the hull's are those of a good hull (a pebble is convex), and a second run
+    reuses the finished reconstruction."""
+    generate_validation_set(tmp_path / "set", names=["pebble"], views=5, size=(128, 96), samples_per_axis=1)
+    config = PipelineConfig(device="cpu", stop_after="normals")
+    result = evaluate_validation_set(tmp_path / "set", tmp_path / "out", config)
+    (record,) = result["scenes"]
+    gt = load_mesh(tmp_path / "set" / "pebble" / "ground_truth.ply")
+    hull = shape_metrics(load_mesh(tmp_path / "out" / "pebble" / "visual_hull.ply"), gt)
+    assert record["hull"]["cd"] == pytest.approx(hull["cd"], rel=1e-9) and record["mesh_from"] == "visual_hull"
+    assert 0 < record["n1_median_hull"] < 20 and 0 < record["n1_median_pred"] < 45
+    assert record["render_error_hull"] > 0 and record["render_error_pred"] > 0
+    assert result["families"]["blob"]["scenes"] == 1 and "pebble" in markdown_table(result)
+    saved = json.loads((tmp_path / "out" / "validation.json").read_text())
+    assert saved["scenes"][0]["hull"] == record["hull"]
+    stamp = (tmp_path / "out" / "pebble" / "report.json").stat().st_mtime_ns
+    evaluate_validation_set(tmp_path / "set", tmp_path / "out", config)
+    assert (tmp_path / "out" / "pebble" / "report.json").stat().st_mtime_ns == stamp
