@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from .configio import config_from_dict, config_to_dict  # noqa: F401 (re-exported)
+from .configio import config_from_dict, config_to_dict, setting  # noqa: F401 (re-exported)
 from .errors import ConfigError, LookingGlassError
 from .hull import HullConfig
 from .normals.latent import LatentOptConfig
@@ -29,9 +29,9 @@ class PipelineConfig:
     hull: HullConfig = field(default_factory=HullConfig)
     normals: NormalStageConfig = field(default_factory=NormalStageConfig)
     surface: SurfaceConfig = field(default_factory=SurfaceConfig)
-    stop_after: str = "surface"
-    device: str = "auto"
-    seed: int = 0
+    stop_after: str = setting("surface", f"Last stage to run: {', '.join(STAGES)}.")
+    device: str = setting("auto", "cpu, cuda, cuda:N or auto (cuda when present).")
+    seed: int = setting(0, "Not read by any stage yet (the point sampling takes surface.seed).")
 
     def __post_init__(self) -> None:
         if self.stop_after not in STAGES:

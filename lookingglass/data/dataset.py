@@ -61,6 +61,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..configio import check_ranges, setting
 from ..errors import LookingGlassError
 from ..hull import HullConfig
 from ..physics.constants import IOR_AIR, IOR_GLASS, PAPER_RENDER_FOV_X_DEG as PAPER_FOV_X_DEG
@@ -95,19 +96,23 @@ class DatasetConfig:
     """
 
     preset: str = "cpu"
-    width: int = 128
-    height: int = 96
-    fov_x_deg: float = PAPER_FOV_X_DEG
-    envmap_height: int = 128
-    samples_per_axis: int = 2
-    max_depth: int = 64
-    prune_threshold: float = 1e-3
-    ior: float = IOR_GLASS
-    ext_ior: float = IOR_AIR
-    p_procedural: float = 0.5
+    width: int = setting(128, "Rendered (= stored = network) image width.", range=(8, None))
+    height: int = setting(96, "Rendered image height.", range=(8, None))
+    fov_x_deg: float = setting(PAPER_FOV_X_DEG, "Horizontal field of view (degrees).", range=(1, 179))
+    envmap_height: int = setting(128, "The environment map's height (its width: twice that).", range=(4, None))
+    samples_per_axis: int = setting(2, "Anti-aliasing: s x s jittered samples a pixel.", range=(1, None))
+    max_depth: int = setting(64, "Most interfaces a light path crosses.", range=(1, None))
+    prune_threshold: float = setting(1e-3, "Light branches whose throughput falls below this are dropped.",
+                                     range=(0, None))
+    ior: float = setting(IOR_GLASS, "Index of refraction of the glass.", range=(1, None))
+    ext_ior: float = setting(IOR_AIR, "Index of refraction around it.", range=(1, None))
+    p_procedural: float = setting(0.5, "Chance that a scene's environment map is procedural.", range=(0, 1))
     test_envmaps: tuple[str, ...] = ("forest_slope_1k.hdr", "potsdamer_platz_1k.hdr")
     hull: HullConfig = field(default_factory=HullConfig)
     shape: ShapeConfig = field(default_factory=ShapeConfig)
+
+    def __post_init__(self) -> None:
+        check_ranges(self)
 
     @classmethod
     def preset_named(cls, name: str) -> "DatasetConfig":

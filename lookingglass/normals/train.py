@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from .. import training
+from ..configio import check_ranges, setting
 from ..errors import LookingGlassError
 from ..physics.optics import IOR_GLASS
 from ..progress import Reporter
@@ -30,16 +31,21 @@ class TrainConfig:
     """lr halves every `lr_halve_epochs` (the paper: 1e-4, halved every 2 of 10 epochs)."""
 
     net: NormalNetConfig = field(default_factory=NormalNetConfig)
-    epochs: int = 10
-    lr: float = 1e-4
-    lr_halve_epochs: int = 2
-    checkpoint_every: int = 50
-    seed: int = 0
-    ior: float = IOR_GLASS
-    augment: bool = True
-    max_scenes: int = 0  # 0: all
-    views_per_step: int = 0  # 0: every view of the scene; k: k random views (views are independent images)
-    init: str = ""  # weights to fine-tune from ("" : random start)
+    epochs: int = setting(10, "Passes over the scenes.", range=(1, None))
+    lr: float = setting(1e-4, "Initial learning rate.", range=(0, None))
+    lr_halve_epochs: int = setting(2, "The learning rate halves every this many epochs.", range=(1, None))
+    checkpoint_every: int = setting(50, "Steps between checkpoints.", range=(1, None))
+    seed: int = setting(0, "Initialization, shuffling and augmentation seed.")
+    ior: float = setting(IOR_GLASS, "Index of refraction of the glass.", range=(1, None))
+    augment: bool = setting(True, "Augment the training scenes.")
+    max_scenes: int = setting(0, "Use only the first N scenes (0: all).", range=(0, None))
+    views_per_step: int = setting(0, "Random views of a scene per step (0: all; views are independent images).",
+                                  range=(0, None))
+    init: str = setting("", "Start from these weights.safetensors (fine-tuning; same network config) instead of "
+                            "a random initialization.")
+
+    def __post_init__(self) -> None:
+        check_ranges(self)
 
 
 # The paper's ablations (Table 1): (use_error_map, use_cost_volume).
