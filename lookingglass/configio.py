@@ -1,4 +1,5 @@
-"""Typed dataclass configs to and from plain dicts (JSON), checking keys and types."""
+"""Typed dataclass configs to and from plain dicts (JSON), checking keys and types; `setting`: a field
+with its help and range, `check_ranges`: the check a config's __post_init__ runs."""
 
 from __future__ import annotations
 

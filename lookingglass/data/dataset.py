@@ -84,6 +84,7 @@ MAX_ATTEMPTS = 4
 class DatasetConfig:
     """What a scene looks like; saved as DIR/SPLIT/config.json. Plain fields (JSON-able).
 
+    preset: the name of the preset (lookingglass.presets) the config started from, recorded.
     width, height: rendered (= stored = network) image size. fov_x_deg: horizontal field of view.
     envmap_height: the environment map is rendered and served at envmap_height x 2 envmap_height.
     samples_per_axis: anti-aliasing, s x s stratified jittered samples per pixel.
@@ -113,18 +114,6 @@ class DatasetConfig:
 
     def __post_init__(self) -> None:
         check_ranges(self)
-
-    @classmethod
-    def preset_named(cls, name: str) -> "DatasetConfig":
-        """"cpu": 128 x 96 images (the cpu normal net's size), E 256 x 128, 4 spp -- about
-        2.5 s per 10-view scene on one core. "paper": 256 x 192 images (the paper's network
-        resolution), E 512 x 256, 9 spp (about the samples of the paper's 480 x 360 4-spp renders
-        area-downsampled to 256 x 192)."""
-        if name == "cpu":
-            return cls()
-        if name == "paper":
-            return cls(preset="paper", width=256, height=192, envmap_height=256, samples_per_axis=3)
-        raise LookingGlassError(f"unknown dataset preset '{name}' (choose from cpu, paper)")
 
     def to_dict(self) -> dict:
         """JSON-normalized dict (tuples as lists), the form config.json holds."""

@@ -74,9 +74,6 @@ def cpu_config(**kw) -> NormalNetConfig:
     return NormalNetConfig(**base)
 
 
-PRESETS = {"paper": paper_config, "cpu": cpu_config}
-
-
 def _conv(cin: int, cout: int, k: int, stride: int, groups: int) -> nn.Sequential:
     # 3x3 stride 1 and 4x4 stride 2 both take padding 1: same size, or exactly half.
     conv = nn.Conv2d(cin, cout, k, stride, padding=1, bias=False)

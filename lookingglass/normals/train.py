@@ -1,7 +1,8 @@
 """Training of the normal network: what one step computes (`NormalInputs.from_sample` ->
-`network_tensors` -> the net -> `normal_loss`, the inference path's own inputs) and the
-presets. The loop itself (Adam, the paper's step schedule, checkpoints and exact resume,
-progress, metrics.jsonl, DistributedDataParallel under torchrun) is lookingglass.training's.
+`network_tensors` -> the net -> `normal_loss`, the inference path's own inputs) and its config
+(the named presets are lookingglass.presets'). The loop itself (Adam, the paper's step schedule,
+checkpoints and exact resume, progress, metrics.jsonl, DistributedDataParallel under torchrun)
+is lookingglass.training's.
 
 RUN_DIR holds: config.json (the resolved TrainConfig), checkpoint.pt, metrics.jsonl (one line
 per epoch: epoch, step, lr, loss, loss_hull, seconds, processes), and at the end
@@ -18,12 +19,11 @@ from torch import Tensor
 
 from .. import training
 from ..configio import check_ranges, setting
-from ..errors import LookingGlassError
 from ..physics.optics import IOR_GLASS
 from ..progress import Reporter
 from ..weights import DEFAULT_ENVMAP_HEIGHT
 from .inputs import NormalInputs, network_tensors
-from .model import HULL_N1_CHANNELS, HULL_N2_CHANNELS, PRESETS, NormalNet, NormalNetConfig
+from .model import HULL_N1_CHANNELS, HULL_N2_CHANNELS, NormalNet, NormalNetConfig
 
 
 @dataclass
@@ -50,19 +50,6 @@ class TrainConfig:
 
 # The paper's ablations (Table 1): (use_error_map, use_cost_volume).
 VARIANTS = {"basic": (False, False), "wr": (True, False), "wr+cv": (True, True)}
-
-
-def train_preset(name: str, views: int = 10) -> TrainConfig:
-    if name not in PRESETS:
-        raise LookingGlassError(f"unknown preset '{name}' (choose from {', '.join(PRESETS)})")
-    net = PRESETS[name](num_views=views)
-    if name == "cpu":
-        # 8 epochs over ~600 scenes, 4 random views a step (more scenes per second than all 10), a
-        # higher rate halved every 3 epochs: ~80 minutes under torchrun on 2 cores (~10 min an
-        # epoch). The earlier 2 epochs, halved after 1, stopped while the loss still fell: the same
-        # data for 8 epochs took the test N1 median from 0.88 to 0.73 x the hull's (docs/history.md).
-        return TrainConfig(net=net, epochs=8, lr=4e-4, lr_halve_epochs=3, views_per_step=4)
-    return TrainConfig(net=net)
 
 
 # ---- one scene -> network tensors ---------------------------------------------------------------

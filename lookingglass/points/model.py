@@ -57,7 +57,6 @@ __all__ = [
     "PointNetConfig",
     "paper_config",
     "cpu_config",
-    "PRESETS",
     "PointNet",
     "farthest_point_sample",
     "ball_query",
@@ -150,9 +149,6 @@ def cpu_config(**kw) -> PointNetConfig:
                 fp_mlps=((256, 128), (128, 64), (64, 32), (32,)), gn_group_size=8, residual=True)
     base.update(kw)
     return PointNetConfig(**base)
-
-
-PRESETS = {"paper": paper_config, "cpu": cpu_config}
 
 
 # ---------------------------------------------------------------------------------------------

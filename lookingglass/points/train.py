@@ -65,11 +65,10 @@ from ..threads import torch_threads
 from ..weights import load_normal_net
 from .features import FEATURE_COLUMNS, NUM_FEATURES, STRATEGIES, map_features, sample_hull_points
 from .losses import LOSSES, PointLoss, view_targets
-from .model import PRESETS, PointNet, PointNetConfig
+from .model import PointNet, PointNetConfig
 
 __all__ = [
     "PointTrainConfig",
-    "point_train_preset",
     "TARGET_KEYS",
     "scene_point_data",
     "prepare_features",
@@ -118,20 +117,6 @@ class PointTrainConfig:
         if self.loss == "view" and self.strategy == "AV":
             raise ConfigError('the "view" loss needs a strategy that chooses a view (NE or RE), not AV')
         check_ranges(self)
-
-
-def point_train_preset(name: str) -> PointTrainConfig:
-    """"paper": the paper's PNet on 20 000 points, lr 1e-4 halved every 2 of 10 epochs.
-    "cpu": the small PNet on 4096 points (model.cpu_config, residual start), a higher rate
-    (the residual start keeps the first steps tame) halved every 2 of 6 epochs. Measured on a
-    2-core machine with another training job on it, 1 thread, 128x96 images, 10 views: feature
-    preparation ~4 s a scene (cost volume and normal net ~2.6 s of it), then ~0.33 s a step:
-    for 600 scenes ~40 min of features once and ~3.5 min an epoch."""
-    if name not in PRESETS:
-        raise LookingGlassError(f"unknown preset '{name}' (choose from {', '.join(PRESETS)})")
-    if name == "cpu":
-        return PointTrainConfig(net=PRESETS[name](), epochs=6, lr=3e-4, lr_halve_epochs=2, checkpoint_every=100)
-    return PointTrainConfig(net=PRESETS[name]())
 
 
 # ---- one scene -> cached arrays ---------------------------------------------------------------------
