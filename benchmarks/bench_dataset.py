@@ -37,6 +37,7 @@ from lookingglass.data.rigs import paper_rig
 from lookingglass.data.shapes import random_shape
 from lookingglass.data.torch_dataset import TransparentSceneDataset
 from lookingglass.physics.environment import EnvironmentMap
+from lookingglass.presets import preset
 from lookingglass.render.tracer import RenderConfig, render_views
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -99,7 +100,7 @@ def main() -> int:
     n1 = 2 if args.quick else args.scenes
     warnings.simplefilter("ignore")
     load0 = os.getloadavg()[0]
-    cpu = DatasetConfig.preset_named("cpu")
+    cpu = preset("cpu").dataset
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         print(f"cpu preset, 1 worker, {n1} scenes ...", flush=True)
@@ -111,7 +112,7 @@ def main() -> int:
         reading = read_speed(tmp / "w1")
         n_paper = 1 if args.quick else 2
         print(f"paper preset, 1 worker, {n_paper} scenes ...", flush=True)
-        paper = run_generate(tmp / "paper", n_paper, 1, DatasetConfig.preset_named("paper"))
+        paper = run_generate(tmp / "paper", n_paper, 1, preset("paper").dataset)
         print(f"  {60 / paper['scenes_per_min']:.1f} s/scene", flush=True)
     print("480 x 360 renders ...", flush=True)
     big = render_480(1 if args.quick else 3)
@@ -127,7 +128,7 @@ def main() -> int:
 
 
 def write_doc(args, one, two, paper, big, reading, loads) -> None:
-    cpu_cfg = DatasetConfig.preset_named("cpu")
+    cpu_cfg = preset("cpu").dataset
     fmt = lambda x: f"{x:.3f}"  # noqa: E731
     lines = [
         "# Dataset generation benchmark (lookingglass.data.dataset)",

@@ -5,68 +5,66 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import Any, Optional
+from typing import Optional
 
 import typer
 from rich.console import Console
 from rich.markup import escape
 
+from .cliconfig import ConfigOptions, apply_config_flags, config_command
 from .errors import LookingGlassError
 from .physics.constants import IOR_GLASS, PAPER_CAPTURE_FOV_X_DEG
+from .presets import DEFAULT_PRESET, PRESET_NAMES
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Reconstruct transparent objects from a few photos under a known environment map.")
 
 
-SURFACE_POINTS_HELP = ("Points on the hull for the surface (SurfaceConfig.points; more keeps narrower slits "
-                       "and takes longer).")
 WORKERS_HELP = ("Scenes evaluated at once on the CPU, one process each (0: one per core; with a GPU, one "
                 "process).")
+PRESET_HELP = (f"Preset the config options start from: {', '.join(PRESET_NAMES)} (lookingglass/presets.py); "
+               f"the config options' shown defaults are {DEFAULT_PRESET}'s; other presets' values, where they differ, "
+               "end their help.")
+
+# The generated config options of each command (lookingglass/cliconfig.py), with the shorter
+# spellings the docs use kept as aliases.
+RECONSTRUCT_OPTIONS = ConfigOptions("pipeline", exclude=frozenset({"hull.device"}), aliases={
+    "hull.resolution": "--hull-resolution", "surface.points": "--surface-points", "normals.weights": "--weights",
+    "normals.views": "--views"})
+GENERATE_OPTIONS = ConfigOptions("dataset", exclude=frozenset({"preset", "hull.num_threads", "hull.device"}))
+# width and height come from the dataset, the ablation switches from --variant
+TRAIN_NORMALS_OPTIONS = ConfigOptions("normal_training", aliases={"net.num_views": "--views"}, exclude=frozenset(
+    {"net.width", "net.height", "net.use_error_map", "net.use_cost_volume"}))
+TRAIN_POINTS_OPTIONS = ConfigOptions("point_training")
+EVAL_SHAPES_OPTIONS = ConfigOptions("pipeline", only=frozenset({"surface.points"}),
+                                    aliases={"surface.points": "--surface-points"})
 
 
-def _surface_points(value: Optional[int]) -> Optional[int]:
-    if value is not None and not 1000 <= value <= 1_000_000:
-        raise LookingGlassError(f"--surface-points must be in [1000, 1000000], got {value}")
-    return value
-
-
-@app.command()
+@app.command(cls=config_command(RECONSTRUCT_OPTIONS))
 def reconstruct(
+    ctx: typer.Context,
     scene_dir: Path = typer.Argument(..., help="Scene folder with scene.json, images, masks and envmap."),
     out: Path = typer.Option(..., "--out", help="Output folder (must be empty unless --force)."),
-    preset: Optional[str] = typer.Option(None, help="Configuration preset: cpu (the default) or paper (the "
-                                                    "paper's 500 + 500 latent steps, for a GPU)."),
+    preset: Optional[str] = typer.Option(None, help=PRESET_HELP + " paper: the paper's 500 + 500 latent steps, "
+                                                                  "for a GPU."),
     config: Optional[Path] = typer.Option(None, "--config", help="Re-run a saved configuration: an earlier run's "
-                                                                 "report.json (or a config JSON); the options "
-                                                                 "below override it."),
-    hull_resolution: Optional[int] = typer.Option(None, help="Voxels along the longest side of the hull box "
-                                                             "(HullConfig.resolution)."),
-    surface_points: Optional[int] = typer.Option(None, help=SURFACE_POINTS_HELP),
-    device: Optional[str] = typer.Option(None, help="cpu, cuda, cuda:N or auto (the default)."),
-    stop_after: Optional[str] = typer.Option(None, help="Last stage to run: visual_hull, normals or surface (the "
-                                                        "default)."),
-    weights: Optional[Path] = typer.Option(None, help="Normal-network weights (default: the shipped ones)."),
-    views: Optional[int] = typer.Option(None, help="Use the shipped weights trained for this view count (5, 10, "
-                                                   "20; the nearest that ships); 0: the capture's view count."),
+                                                                 "report.json (or a config JSON); the config "
+                                                                 "options given override it."),
     force: bool = typer.Option(False, "--force", help="Overwrite a non-empty output folder."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Reconstruct the object's surface; writes mesh.ply, visual_hull.ply, points.ply, normals/ and report.json."""
     import dataclasses
 
-    from .config import PipelineConfig, preset as make_preset
+    from .config import PipelineConfig
     from .pipeline import reconstruct as run
+    from .presets import preset as make_preset
     from .progress import Reporter
 
     if preset is not None and config is not None:
         raise LookingGlassError("give --preset or --config, not both")
-    base = PipelineConfig.from_json(config) if config is not None else make_preset(preset or "cpu")
-    if hull_resolution is not None and not 16 <= hull_resolution <= 1024:
-        raise LookingGlassError(f"--hull-resolution must be in [16, 1024], got {hull_resolution}")
-    normals = _with_overrides(base.normals, weights=str(weights) if weights is not None else None, views=views)
-    resolved = _with_overrides(base, device=device, stop_after=stop_after, normals=normals,
-                               hull=_with_overrides(base.hull, resolution=hull_resolution),
-                               surface=_with_overrides(base.surface, points=_surface_points(surface_points)))
+    base = PipelineConfig.from_json(config) if config is not None else make_preset(preset or DEFAULT_PRESET).pipeline
+    resolved = apply_config_flags(ctx, base)
     reporter = Reporter(quiet=quiet)
     report = run(scene_dir, out, dataclasses.replace(resolved), force=force, reporter=reporter)
     reporter.info(f"wrote {out / 'mesh.ply'} ({report['total_seconds']:.1f} s)")
@@ -157,7 +155,8 @@ def demo(
     """Make a glass object, render it under a procedural environment, reconstruct and score it."""
     import numpy as np
 
-    from .config import preset as make_preset
+    import dataclasses
+
     from .data.envmaps import procedural_envmap
     from .data.rigs import paper_rig
     from .data.shapes import random_shape
@@ -165,6 +164,7 @@ def demo(
     from .fileio import write_atomic, write_json
     from .metrics import load_mesh, shape_metrics
     from .pipeline import prepare_output_dir, reconstruct as run
+    from .presets import preset as make_preset
     from .progress import Reporter
 
     if views not in (5, 10, 20):
@@ -177,8 +177,7 @@ def demo(
         env = procedural_envmap(np.random.default_rng(seed), 256)
         cameras = paper_rig(views, seed, width=size[0], height=size[1])
         render_capture(shape, env, cameras, out / "scene", overwrite=True)
-    config = make_preset("cpu")
-    config.device = device
+    config = dataclasses.replace(make_preset(DEFAULT_PRESET).pipeline, device=device)
     report = run(out / "scene", out / "result", config, force=True, reporter=reporter)
     mesh = load_mesh(out / "result" / "mesh.ply")
     scores = shape_metrics(mesh, shape)
@@ -195,8 +194,9 @@ def demo(
                   f"CDN-mean {scores['cdn_mean']:.2f} deg, CDN-med {scores['cdn_med']:.2f} deg")
 
 
-@app.command()
+@app.command(cls=config_command(GENERATE_OPTIONS))
 def generate(
+    ctx: typer.Context,
     out: Path = typer.Option(..., "--out", help="Dataset folder; scenes go to OUT/SPLIT/scene_NNNNN."),
     scenes: int = typer.Option(..., "--scenes", help="Scenes in the split (indices 0 .. N-1)."),
     views: int = typer.Option(10, help="5, 10 or 20 views per scene (the paper's rigs)."),
@@ -204,15 +204,16 @@ def generate(
     seed: int = typer.Option(0, help="Dataset seed: scene i depends only on (seed, split, i)."),
     workers: int = typer.Option(0, help="Worker processes (0: one per CPU core)."),
     shard: str = typer.Option("1/1", help="K/N: make only the scenes i with i % N == K-1 (K from 1)."),
-    preset: str = typer.Option("cpu", help="cpu (128x96 images, E 256x128) or paper (256x192, E 512x256)."),
+    preset: str = typer.Option(DEFAULT_PRESET, help=PRESET_HELP),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Generate synthetic training scenes (images, masks, GT and visual-hull normals, meshes); resumable."""
-    from .data.dataset import DatasetConfig, generate_dataset, parse_shard
+    from .data.dataset import generate_dataset, parse_shard
+    from .presets import preset as make_preset
     from .progress import Reporter
 
     shard_kn = parse_shard(shard)
-    config = DatasetConfig.preset_named(preset)
+    config = apply_config_flags(ctx, make_preset(preset).dataset)
     reporter = Reporter(quiet=quiet)
     summary = generate_dataset(out, scenes, views=views, split=split, seed=seed, config=config,
                                workers=workers, shard=shard_kn, reporter=reporter)
@@ -229,77 +230,58 @@ def _device(name: str) -> str:
     return resolve_device(name)
 
 
-def _with_overrides(config: Any, **values: Any) -> Any:
-    """The preset `config` with the options the user gave (None: keep the preset's value)."""
-    import dataclasses
-
-    return dataclasses.replace(config, **{k: v for k, v in values.items() if v is not None})
-
-
-@app.command("train-normals")
+@app.command("train-normals", cls=config_command(TRAIN_NORMALS_OPTIONS))
 def train_normals(
+    ctx: typer.Context,
     data: Path = typer.Option(..., "--data", help="Dataset folder made by `generate` (uses DATA/train)."),
     out: Path = typer.Option(..., "--out", help="Run folder: config, checkpoints, metrics, weights."),
-    views: int = typer.Option(10, help="Views per scene to train on (5, 10 or 20; a subset of the stored rig)."),
-    preset: str = typer.Option("cpu", help="cpu or paper network sizes and schedule."),
-    variant: str = typer.Option("wr+cv", help="basic, wr or wr+cv (the paper's ablations)."),
-    epochs: Optional[int] = typer.Option(None, help="Override the preset's epochs."),
-    lr: Optional[float] = typer.Option(None, help="Override the preset's initial learning rate."),
-    lr_halve_epochs: Optional[int] = typer.Option(None, help="Override the preset's learning-rate halving period "
-                                                             "(epochs)."),
-    init: str = typer.Option("", help="Start from these weights.safetensors (fine-tuning; same network config) "
-                                      "instead of a random initialization."),
-    max_scenes: int = typer.Option(0, help="Use only the first N scenes (0: all)."),
+    preset: str = typer.Option(DEFAULT_PRESET, help=PRESET_HELP),
+    variant: Optional[str] = typer.Option(None, help="basic, wr or wr+cv (the paper's ablations): sets the net's "
+                                                     "error-map and cost-volume switches (default: the preset's, "
+                                                     "both on)."),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
-    seed: int = typer.Option(0, help="Initialization and shuffling seed."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
-    """Train the normal network (resumes from OUT/checkpoint.pt; runs under torchrun for DDP)."""
+    """Train the normal network (resumes from OUT/checkpoint.pt; runs under torchrun for DDP). --views
+    (net.num_views) picks a subset of the stored rig's views."""
+    import dataclasses
+
     from .data.torch_dataset import TransparentSceneDataset
-    from .normals.train import VARIANTS, train_normals as run, train_preset
+    from .normals.train import VARIANTS, train_normals as run
+    from .presets import preset as make_preset
     from .progress import Reporter
 
-    if variant not in VARIANTS:
+    if variant is not None and variant not in VARIANTS:
         raise LookingGlassError(f"--variant must be one of {', '.join(VARIANTS)}, got {variant!r}")
-    config = _with_overrides(train_preset(preset, views), seed=seed, max_scenes=max_scenes, epochs=epochs, lr=lr,
-                             lr_halve_epochs=lr_halve_epochs, init=init)
-    config.net.use_error_map, config.net.use_cost_volume = VARIANTS[variant]
-    dataset = TransparentSceneDataset(data, "train", views=views, augment=True, seed=seed)
+    config = apply_config_flags(ctx, make_preset(preset).normal_training)
+    dataset = TransparentSceneDataset(data, "train", views=config.net.num_views, augment=True, seed=config.seed)
     # The network runs at the data's resolution (the dataset preset matches the network preset).
-    config.net.width, config.net.height = dataset.config.width, dataset.config.height
-    run(dataset, out, config, device=_device(device), reporter=Reporter(quiet=quiet))
+    net = dataclasses.replace(config.net, width=dataset.config.width, height=dataset.config.height)
+    if variant is not None:
+        net = dataclasses.replace(net, use_error_map=VARIANTS[variant][0], use_cost_volume=VARIANTS[variant][1])
+    run(dataset, out, dataclasses.replace(config, net=net), device=_device(device), reporter=Reporter(quiet=quiet))
 
 
-@app.command("train-points")
+@app.command("train-points", cls=config_command(TRAIN_POINTS_OPTIONS))
 def train_points(
+    ctx: typer.Context,
     data: Path = typer.Option(..., "--data", help="Dataset folder made by `generate` (uses DATA/train)."),
     normals: Path = typer.Option(..., "--normals", help="The trained normal net's weights.safetensors."),
     out: Path = typer.Option(..., "--out", help="Run folder: config, feature cache, checkpoints, metrics, weights."),
-    preset: str = typer.Option("cpu", help="cpu or paper network sizes and schedule."),
-    loss: str = typer.Option("chamfer", help="chamfer (the paper's best), nearest or view."),
-    strategy: str = typer.Option("RE", help="Feature mapping: RE (the paper's best), NE or AV."),
-    epochs: Optional[int] = typer.Option(None, help="Override the preset's epochs."),
-    lr: Optional[float] = typer.Option(None, help="Override the preset's initial learning rate."),
-    lr_halve_epochs: Optional[int] = typer.Option(None, help="Override the preset's learning-rate halving period "
-                                                             "(epochs)."),
-    init: str = typer.Option("", help="Start from these weights.safetensors (fine-tuning; same network config) "
-                                      "instead of a random initialization."),
-    max_scenes: int = typer.Option(0, help="Use only the first N scenes (0: all)."),
+    preset: str = typer.Option(DEFAULT_PRESET, help=PRESET_HELP),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
-    seed: int = typer.Option(0, help="Initialization, shuffling and point-sampling seed."),
     threads: int = typer.Option(1, help="Torch threads on the CPU (0: half the cores; PNet is fastest on 1)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Train the point network on normal-net features (cached in OUT/features; resumes from
     OUT/checkpoint.pt; runs under torchrun for DDP)."""
     from .data.torch_dataset import TransparentSceneDataset
-    from .points.train import point_train_preset, train_points as run
+    from .points.train import train_points as run
+    from .presets import preset as make_preset
     from .progress import Reporter
     from .weights import load_normal_net
 
-    # dataclasses.replace re-runs __post_init__, which checks loss and strategy
-    config = _with_overrides(point_train_preset(preset), loss=loss, strategy=strategy, seed=seed,
-                             max_scenes=max_scenes, epochs=epochs, lr=lr, lr_halve_epochs=lr_halve_epochs, init=init)
+    config = apply_config_flags(ctx, make_preset(preset).point_training)
     views = load_normal_net(normals).net.cfg.num_views
     dataset = TransparentSceneDataset(data, "train", views=views, augment=False)
     run(dataset, out, config, normals, device=_device(device), reporter=Reporter(quiet=quiet),
@@ -335,8 +317,9 @@ def eval_normals(
     print(markdown_table(results))
 
 
-@app.command("eval-shapes")
+@app.command("eval-shapes", cls=config_command(EVAL_SHAPES_OPTIONS))
 def eval_shapes(
+    ctx: typer.Context,
     data: Path = typer.Option(..., "--data", help="Dataset folder with a test split (DATA/test)."),
     weights: Optional[Path] = typer.Option(None, help="Normal-network weights (default: the shipped ones)."),
     views: int = typer.Option(10, help="Views per scene."),
@@ -344,7 +327,6 @@ def eval_shapes(
     latent_iterations: int = typer.Option(10, help="Latent-optimization steps per phase (0: skip)."),
     max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
     point_weights: Optional[Path] = typer.Option(None, help="PNet weights: adds a pnet row (default: shipped)."),
-    surface_points: Optional[int] = typer.Option(None, help=SURFACE_POINTS_HELP),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write rows and per-scene metrics as JSON "
                                             "(after every scene; a rerun with the same settings resumes from it)."),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
@@ -358,10 +340,11 @@ def eval_shapes(
     from .normals.latent import LatentOptConfig
     from .points.evaluate import evaluate_shapes, markdown_table
     from .points.features import STRATEGIES
-    from .points.stage import SurfaceConfig
+    from .presets import preset as make_preset
     from .progress import Reporter
     from .weights import shipped_weights
 
+    surface = apply_config_flags(ctx, make_preset().pipeline).surface
     chosen = tuple(s.strip().upper() for s in strategies.split(",") if s.strip())
     if not chosen or any(s not in STRATEGIES for s in chosen):
         raise LookingGlassError(f"--strategies takes a comma-separated subset of {', '.join(STRATEGIES)}, "
@@ -372,7 +355,6 @@ def eval_shapes(
     latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
     dataset = TransparentSceneDataset(data, "test", views=views)
     point_weights = point_weights or shipped_weights(views, "points")[0]
-    surface = SurfaceConfig() if _surface_points(surface_points) is None else SurfaceConfig(points=surface_points)
     settings = {"data": str(Path(data).resolve()), "weights": str(Path(weights).resolve()), "views": views,
                 "surface_points": surface.points,
                 "strategies": list(chosen), "latent_iterations": latent_iterations,
@@ -404,7 +386,8 @@ def main() -> None:
     try:
         app()
     except LookingGlassError as exc:
-        Console(stderr=True, highlight=False).print(f"[red]error:[/red] {escape(str(exc))}")
+        # soft_wrap: one line whatever the terminal's width (rich wraps at 80 columns off a tty)
+        Console(stderr=True, highlight=False, soft_wrap=True).print(f"[red]error:[/red] {escape(str(exc))}")
         sys.exit(2)
     except KeyboardInterrupt:
         Console(stderr=True).print("interrupted")

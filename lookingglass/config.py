@@ -1,7 +1,7 @@
-"""Typed configuration: one dataclass per stage, assembled into named presets.
+"""Typed configuration of `reconstruct`: one dataclass per stage, assembled into PipelineConfig.
 
-`paper` uses the paper's sizes (meant for a GPU); `cpu` is small enough to run and train on a
-laptop CPU. The resolved config is saved (JSON) beside every output and checkpoint, and
+The named presets (`cpu`, `paper`) live in lookingglass.presets, with the dataset's and the
+trainers' configs. The resolved config is saved (JSON) beside every output and checkpoint, and
 `config_from_dict` rebuilds it, refusing unknown keys, so a run folder can be reproduced.
 """
 
@@ -9,10 +9,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from .configio import config_from_dict, config_to_dict  # noqa: F401 (re-exported)
+from .configio import config_from_dict, config_to_dict, setting  # noqa: F401 (re-exported)
 from .errors import ConfigError, LookingGlassError
 from .hull import HullConfig
-from .normals.latent import LatentOptConfig
 from .normals.stage import NormalStageConfig
 from .points.stage import SurfaceConfig
 
@@ -29,9 +28,9 @@ class PipelineConfig:
     hull: HullConfig = field(default_factory=HullConfig)
     normals: NormalStageConfig = field(default_factory=NormalStageConfig)
     surface: SurfaceConfig = field(default_factory=SurfaceConfig)
-    stop_after: str = "surface"
-    device: str = "auto"
-    seed: int = 0
+    stop_after: str = setting("surface", f"Last stage to run: {', '.join(STAGES)}.")
+    device: str = setting("auto", "cpu, cuda, cuda:N or auto (cuda when present).")
+    seed: int = setting(0, "Not read by any stage yet (the point sampling takes surface.seed).")
 
     def __post_init__(self) -> None:
         if self.stop_after not in STAGES:
@@ -55,28 +54,6 @@ class PipelineConfig:
             return config_from_dict(cls, data, where=str(path))
         except (TypeError, ValueError) as exc:
             raise LookingGlassError(f"invalid config ({exc})", path) from None
-
-
-def _paper() -> PipelineConfig:
-    """The paper's post-processing: 500 latent-optimization steps on N2, then 500 on both (meant
-    for a GPU: ~0.9 s a step for 10 views on this CPU)."""
-    return PipelineConfig(normals=NormalStageConfig(latent=LatentOptConfig(iterations_n2=500, iterations_both=500)))
-
-
-def _cpu() -> PipelineConfig:
-    """The defaults: 10 + 10 latent steps (the angles barely move with more; docs/results.md)."""
-    return PipelineConfig()
-
-
-PRESETS = {"paper": _paper, "cpu": _cpu}
-
-
-def preset(name: str) -> PipelineConfig:
-    """A fresh copy of a named preset."""
-    try:
-        return PRESETS[name]()
-    except KeyError:
-        raise LookingGlassError(f"unknown preset '{name}' (choose from {', '.join(PRESETS)})") from None
 
 
 def resolve_device(name: str) -> str:

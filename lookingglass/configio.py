@@ -1,4 +1,5 @@
-"""Typed dataclass configs to and from plain dicts (JSON), checking keys and types."""
+"""Typed dataclass configs to and from plain dicts (JSON), checking keys and types; `setting`: a field
+with its help and range, `check_ranges`: the check a config's __post_init__ runs."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import dataclasses
 import typing
 from typing import Any
 
-from .errors import LookingGlassError
+from .errors import ConfigError, LookingGlassError
 
 
 def config_to_dict(config: Any) -> dict:
@@ -46,3 +47,33 @@ def _coerce(hint: Any, value: Any, where: str) -> Any:
     if hint in (int, str, bool) and not isinstance(value, hint):
         raise LookingGlassError(f"{where}: expected {hint.__name__}, got {value!r}")
     return value
+
+
+def setting(default: Any, help: str = "", range: tuple | None = None, cli_range: tuple | None = None) -> Any:
+    """A config field with what the command line shows and checks (dataclasses.field metadata):
+    help: its option's help; range (low, high), either None for open: the values the config
+    accepts (`check_ranges`, called by the config's __post_init__); cli_range: a narrower range
+    the command line takes (a library caller may go outside it, e.g. tests on tiny inputs)."""
+    return dataclasses.field(default=default, metadata={"help": help, "range": range, "cli_range": cli_range})
+
+
+def out_of_range(name: str, value: Any, bounds: tuple | None) -> str | None:
+    """'NAME must be in [low, high], got VALUE' when `value` is outside `bounds`, else None."""
+    if bounds is None or value is None:
+        return None
+    low, high = bounds
+    if (low is None or value >= low) and (high is None or value <= high):
+        return None
+    if high is None:
+        return f"{name} must be at least {low}, got {value}"
+    if low is None:
+        return f"{name} must be at most {high}, got {value}"
+    return f"{name} must be in [{low}, {high}], got {value}"
+
+
+def check_ranges(config: Any) -> None:
+    """Raise ConfigError for the first field of `config` outside its `setting(range=...)`."""
+    for f in dataclasses.fields(config):
+        problem = out_of_range(f.name, getattr(config, f.name), f.metadata.get("range"))
+        if problem:
+            raise ConfigError(problem)

@@ -33,7 +33,8 @@ import numpy as np
 import torch
 import trimesh
 
-from .errors import LookingGlassError
+from .configio import check_ranges, setting
+from .errors import ConfigError, LookingGlassError
 from .meshes import largest_component, orient_outward, require_closed_and_oriented, taubin_smooth
 from .meshes import subdivide_ls3_loop as _ls3_loop  # the name hull's tests import
 from .threads import torch_threads
@@ -69,19 +70,28 @@ class HullConfig:
     device: torch device for the carving ("cpu", "cuda", ...).
     """
 
-    resolution: int = 128
-    field: str = "distance"
-    padding: float = 0.02
-    coarse_resolution: int = 64
-    box_iterations: int = 8
-    subdivision_iterations: int = 5
-    subdivision_threshold: float = 0.01
-    smoothing_iterations: int = 0
-    min_view_coverage: float = 0.5
-    warn_view_coverage: float = 0.9
-    chunk_voxels: int = 1 << 20
-    num_threads: int = 0
+    resolution: int = setting(128, "Voxels along the longest side of the hull box.", range=(16, 1024))
+    field: str = setting("distance", "distance (sub-voxel surface) or binary (the paper release's occupancy).")
+    padding: float = setting(0.02, "Margin around the tight box, a fraction of its longest side.", range=(0, None))
+    coarse_resolution: int = setting(64, "Voxels along the longest side in the box search's last round.",
+                                     range=(8, 1024))
+    box_iterations: int = setting(8, "Most coarse carve -> shrink rounds of the box search.", range=(0, None))
+    subdivision_iterations: int = setting(5, "LS3 Loop subdivision rounds (0: the raw marching-cubes surface).",
+                                          range=(0, None))
+    subdivision_threshold: float = setting(0.01, "Edges longer than this fraction of the box diagonal are split.",
+                                           range=(0, None))
+    smoothing_iterations: int = setting(0, "Taubin smoothing steps before subdivision.", range=(0, None))
+    min_view_coverage: float = setting(0.5, "Least fraction of every mask the hull must cover (else an error).",
+                                       range=(0, 1))
+    warn_view_coverage: float = setting(0.9, "Below this fraction of a mask covered: a warning.", range=(0, 1))
+    chunk_voxels: int = setting(1 << 20, "Voxels carved per batch (memory ~ 40 bytes each).", range=(1, None))
+    num_threads: int = setting(0, "Torch threads while carving (0: half the cores; < 0: torch's setting).")
     device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        check_ranges(self)
+        if self.field not in ("distance", "binary"):
+            raise ConfigError(f'field must be "distance" or "binary", got {self.field!r}')
 
 
 @dataclass
@@ -470,15 +480,11 @@ class _StepClock:
 
 
 def _checked_inputs(masks, cameras: Cameras, config: HullConfig) -> np.ndarray:
-    """The masks as (V, H, W) bool after checking them against the cameras and the config.
+    """The masks as (V, H, W) bool after checking them against the cameras.
 
-    Raises ValueError for a bad config, LookingGlassError for masks that do not fit the cameras or
-    an empty mask; warns when a mask touches its image border (the hull is clipped there).
+    Raises LookingGlassError for masks that do not fit the cameras or an empty mask (the config
+    checked its own ranges); warns when a mask touches its image border (the hull is clipped there).
     """
-    if config.field not in ("distance", "binary"):
-        raise ValueError(f'HullConfig.field must be "distance" or "binary", not {config.field!r}')
-    if min(config.resolution, config.coarse_resolution) < 8:
-        raise ValueError("HullConfig.resolution and coarse_resolution must be at least 8")
     masks = _as_bool_masks(masks)
     V, H, W = masks.shape
     if V != cameras.num_views:

@@ -13,6 +13,7 @@ import torch
 import trimesh
 
 from lookingglass.points import model as pm
+from lookingglass.presets import preset
 from lookingglass.points.features import FEATURE_COLUMNS, NUM_FEATURES, PAPER_FEATURES
 from lookingglass.points.losses import (LOSSES, chamfer_loss, nearest_l2_loss, view_dependent_l2_loss,
                                         view_targets)
@@ -234,7 +235,7 @@ def test_widened_net_is_the_same_function_and_reads_the_new_columns():
 
 def test_presets():
     paper, cpu = paper_config(), cpu_config()
-    assert pm.PRESETS["paper"]().centres == (1024, 256, 64, 16)
+    assert preset("paper").point_training.net.centres == (1024, 256, 64, 16)
     assert paper.radii == (0.1, 0.2, 0.4, 0.8) and paper.neighbours == (64, 32, 32, 32)
     assert paper.sa_mlps == ((64, 64), (128, 128), (256, 256), (512, 512))
     assert paper.offset_scale == 0.25 and paper.in_features == NUM_FEATURES

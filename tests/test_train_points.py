@@ -22,8 +22,8 @@ from lookingglass.normals.train import TrainConfig, train_normals
 from lookingglass.points.features import FEATURE_COLUMNS, NUM_FEATURES, PAPER_FEATURES
 from lookingglass.points.model import PointNetConfig
 from lookingglass.weights import load_normal_net, load_point_net
-from lookingglass.points.train import (PointTrainConfig, prepare_features, point_train_preset,
-                                       train_points)
+from lookingglass.points.train import PointTrainConfig, prepare_features, train_points
+from lookingglass.presets import preset
 
 
 @pytest.fixture(scope="module")
@@ -164,7 +164,7 @@ def test_view_loss_targets(tiny, tmp_path):
         PointTrainConfig(loss="view", strategy="AV")
     with pytest.raises(LookingGlassError, match="unknown point loss"):
         PointTrainConfig(loss="nope")
-    assert point_train_preset("cpu").net.num_points == 4096
+    assert preset("cpu").point_training.net.num_points == 4096
 
 
 def test_cli_train_points(tiny, tmp_path):

@@ -61,6 +61,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..configio import check_ranges, setting
 from ..errors import LookingGlassError
 from ..hull import HullConfig
 from ..physics.constants import IOR_AIR, IOR_GLASS, PAPER_RENDER_FOV_X_DEG as PAPER_FOV_X_DEG
@@ -83,6 +84,7 @@ MAX_ATTEMPTS = 4
 class DatasetConfig:
     """What a scene looks like; saved as DIR/SPLIT/config.json. Plain fields (JSON-able).
 
+    preset: the name of the preset (lookingglass.presets) the config started from, recorded.
     width, height: rendered (= stored = network) image size. fov_x_deg: horizontal field of view.
     envmap_height: the environment map is rendered and served at envmap_height x 2 envmap_height.
     samples_per_axis: anti-aliasing, s x s stratified jittered samples per pixel.
@@ -95,31 +97,23 @@ class DatasetConfig:
     """
 
     preset: str = "cpu"
-    width: int = 128
-    height: int = 96
-    fov_x_deg: float = PAPER_FOV_X_DEG
-    envmap_height: int = 128
-    samples_per_axis: int = 2
-    max_depth: int = 64
-    prune_threshold: float = 1e-3
-    ior: float = IOR_GLASS
-    ext_ior: float = IOR_AIR
-    p_procedural: float = 0.5
+    width: int = setting(128, "Rendered (= stored = network) image width.", range=(8, None))
+    height: int = setting(96, "Rendered image height.", range=(8, None))
+    fov_x_deg: float = setting(PAPER_FOV_X_DEG, "Horizontal field of view (degrees).", range=(1, 179))
+    envmap_height: int = setting(128, "The environment map's height (its width: twice that).", range=(4, None))
+    samples_per_axis: int = setting(2, "Anti-aliasing: s x s jittered samples a pixel.", range=(1, None))
+    max_depth: int = setting(64, "Most interfaces a light path crosses.", range=(1, None))
+    prune_threshold: float = setting(1e-3, "Light branches whose throughput falls below this are dropped.",
+                                     range=(0, None))
+    ior: float = setting(IOR_GLASS, "Index of refraction of the glass.", range=(1, None))
+    ext_ior: float = setting(IOR_AIR, "Index of refraction around it.", range=(1, None))
+    p_procedural: float = setting(0.5, "Chance that a scene's environment map is procedural.", range=(0, 1))
     test_envmaps: tuple[str, ...] = ("forest_slope_1k.hdr", "potsdamer_platz_1k.hdr")
     hull: HullConfig = field(default_factory=HullConfig)
     shape: ShapeConfig = field(default_factory=ShapeConfig)
 
-    @classmethod
-    def preset_named(cls, name: str) -> "DatasetConfig":
-        """"cpu": 128 x 96 images (the cpu normal net's size), E 256 x 128, 4 spp -- about
-        2.5 s per 10-view scene on one core. "paper": 256 x 192 images (the paper's network
-        resolution), E 512 x 256, 9 spp (about the samples of the paper's 480 x 360 4-spp renders
-        area-downsampled to 256 x 192)."""
-        if name == "cpu":
-            return cls()
-        if name == "paper":
-            return cls(preset="paper", width=256, height=192, envmap_height=256, samples_per_axis=3)
-        raise LookingGlassError(f"unknown dataset preset '{name}' (choose from cpu, paper)")
+    def __post_init__(self) -> None:
+        check_ranges(self)
 
     def to_dict(self) -> dict:
         """JSON-normalized dict (tuples as lists), the form config.json holds."""

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..configio import check_ranges, setting
 from ..physics.camera import Cameras
 from ..physics.environment import EnvironmentMap
 from .model import NormalNet
@@ -23,10 +24,13 @@ class LatentOptConfig:
     40 + 40) while the render error falls slowly (7.8 -> 6.8e-2): 10 + 10 keeps the stage near
     the 20 s budget."""
 
-    iterations_n2: int = 10
-    iterations_both: int = 10
-    lr: float = 5e-3
-    identity_weight: float = 100.0
+    iterations_n2: int = setting(10, "Latent-optimization steps on N2 (N1 held).", range=(0, None))
+    iterations_both: int = setting(10, "Latent-optimization steps on N1 and N2.", range=(0, None))
+    lr: float = setting(5e-3, "Adam step size of the latent optimization.", range=(0, None))
+    identity_weight: float = setting(100.0, "Weight of the loss holding N1 during the N2 steps.", range=(0, None))
+
+    def __post_init__(self) -> None:
+        check_ranges(self)
 
 
 def masked_render_loss(envmap: EnvironmentMap, n1: Tensor, n2: Tensor, cameras: Cameras, image: Tensor,

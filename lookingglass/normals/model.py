@@ -16,6 +16,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor, nn
 
+from ..configio import setting
 from ..physics.camera import Cameras
 from ..physics.environment import EnvironmentMap
 from ..physics.optics import IOR_AIR, IOR_GLASS
@@ -30,20 +31,21 @@ COST_VOLUME_THETA_DEG = {5: 25.0, 10: 15.0, 20: 10.0}
 class NormalNetConfig:
     """Widths of NNet/FNet and the ablation switches. `paper` sizes are the paper's."""
 
-    width: int = 256
-    height: int = 192
-    enc_channels: tuple[int, int, int] = (64, 256, 512)
-    fnet_channels: int = 64
-    groups: int = 16
-    use_error_map: bool = True
-    use_cost_volume: bool = True
-    num_views: int = 10
-    cost_volume_k: int = 4
-    cost_volume_theta_deg: float | None = None  # None: the supplement's value for num_views
+    width: int = setting(256, "Input width (the data's).")
+    height: int = setting(192, "Input height (the data's).")
+    enc_channels: tuple[int, int, int] = setting((64, 256, 512), "Encoder widths, finest first.")
+    fnet_channels: int = setting(64, "FNet (cost-volume feature) width.")
+    groups: int = setting(16, "GroupNorm groups.")
+    use_error_map: bool = setting(True, "Feed the hull normals' rendering error and TIR mask (wr).")
+    use_cost_volume: bool = setting(True, "Add the cost volume (wr+cv).")
+    num_views: int = setting(10, "Views per scene.")
+    cost_volume_k: int = setting(4, "Candidate normals per interface in the cost volume (K; K x K pairs).")
+    cost_volume_theta_deg: float | None = setting(None, "Cost-volume angle (degrees; default: the supplement's for "
+                                                        "num_views).")
     # Ours, not the paper's: predict a correction to the hull's normals, normalize(Ñ + tanh(out)),
     # with the last layer zero-initialized, so an untrained net starts at the hull's normals and
     # training spends its steps on corrections (the paper's net regresses normals from scratch).
-    residual: bool = False
+    residual: bool = setting(False, "Predict a correction to the hull's normals (ours), not the normals.")
 
     # Settings that change no parameter: weights trained at one view count can start (--init)
     # training at another -- the cost volume samples K neighbours whatever the rig.
@@ -70,9 +72,6 @@ def cpu_config(**kw) -> NormalNetConfig:
     base = dict(width=128, height=96, enc_channels=(32, 64, 128), fnet_channels=32, groups=8, residual=True)
     base.update(kw)
     return NormalNetConfig(**base)
-
-
-PRESETS = {"paper": paper_config, "cpu": cpu_config}
 
 
 def _conv(cin: int, cout: int, k: int, stride: int, groups: int) -> nn.Sequential:

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from ..capture.images import write_image
+from ..configio import setting
 from ..errors import ConfigError
 from ..fileio import write_atomic
 from ..hull import VisualHull
@@ -32,8 +33,9 @@ class NormalStageConfig:
     """weights: a weights.safetensors path, or "" for the shipped weights of the view count
     nearest `views` (0: the capture's view count). latent: the post-processing (iterations 0 = off)."""
 
-    weights: str = ""
-    views: int = 0
+    weights: str = setting("", "Normal-network weights (\"\": the shipped ones).")
+    views: int = setting(0, "Use the shipped weights trained for this view count (5, 10, 20; the nearest that "
+                            "ships); 0: the capture's view count.")
     latent: LatentOptConfig = field(default_factory=LatentOptConfig)
 
     def __post_init__(self) -> None:

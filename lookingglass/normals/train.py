@@ -1,7 +1,8 @@
 """Training of the normal network: what one step computes (`NormalInputs.from_sample` ->
-`network_tensors` -> the net -> `normal_loss`, the inference path's own inputs) and the
-presets. The loop itself (Adam, the paper's step schedule, checkpoints and exact resume,
-progress, metrics.jsonl, DistributedDataParallel under torchrun) is lookingglass.training's.
+`network_tensors` -> the net -> `normal_loss`, the inference path's own inputs) and its config
+(the named presets are lookingglass.presets'). The loop itself (Adam, the paper's step schedule,
+checkpoints and exact resume, progress, metrics.jsonl, DistributedDataParallel under torchrun)
+is lookingglass.training's.
 
 RUN_DIR holds: config.json (the resolved TrainConfig), checkpoint.pt, metrics.jsonl (one line
 per epoch: epoch, step, lr, loss, loss_hull, seconds, processes), and at the end
@@ -17,12 +18,12 @@ import torch
 from torch import Tensor
 
 from .. import training
-from ..errors import LookingGlassError
+from ..configio import check_ranges, setting
 from ..physics.optics import IOR_GLASS
 from ..progress import Reporter
 from ..weights import DEFAULT_ENVMAP_HEIGHT
 from .inputs import NormalInputs, network_tensors
-from .model import HULL_N1_CHANNELS, HULL_N2_CHANNELS, PRESETS, NormalNet, NormalNetConfig
+from .model import HULL_N1_CHANNELS, HULL_N2_CHANNELS, NormalNet, NormalNetConfig
 
 
 @dataclass
@@ -30,33 +31,25 @@ class TrainConfig:
     """lr halves every `lr_halve_epochs` (the paper: 1e-4, halved every 2 of 10 epochs)."""
 
     net: NormalNetConfig = field(default_factory=NormalNetConfig)
-    epochs: int = 10
-    lr: float = 1e-4
-    lr_halve_epochs: int = 2
-    checkpoint_every: int = 50
-    seed: int = 0
-    ior: float = IOR_GLASS
-    augment: bool = True
-    max_scenes: int = 0  # 0: all
-    views_per_step: int = 0  # 0: every view of the scene; k: k random views (views are independent images)
-    init: str = ""  # weights to fine-tune from ("" : random start)
+    epochs: int = setting(10, "Passes over the scenes.", range=(1, None))
+    lr: float = setting(1e-4, "Initial learning rate.", range=(0, None))
+    lr_halve_epochs: int = setting(2, "The learning rate halves every this many epochs.", range=(1, None))
+    checkpoint_every: int = setting(50, "Steps between checkpoints.", range=(1, None))
+    seed: int = setting(0, "Initialization, shuffling and augmentation seed.")
+    ior: float = setting(IOR_GLASS, "Index of refraction of the glass.", range=(1, None))
+    augment: bool = setting(True, "Augment the training scenes.")
+    max_scenes: int = setting(0, "Use only the first N scenes (0: all).", range=(0, None))
+    views_per_step: int = setting(0, "Random views of a scene per step (0: all; views are independent images).",
+                                  range=(0, None))
+    init: str = setting("", "Start from these weights.safetensors (fine-tuning; same network config) instead of "
+                            "a random initialization.")
+
+    def __post_init__(self) -> None:
+        check_ranges(self)
 
 
 # The paper's ablations (Table 1): (use_error_map, use_cost_volume).
 VARIANTS = {"basic": (False, False), "wr": (True, False), "wr+cv": (True, True)}
-
-
-def train_preset(name: str, views: int = 10) -> TrainConfig:
-    if name not in PRESETS:
-        raise LookingGlassError(f"unknown preset '{name}' (choose from {', '.join(PRESETS)})")
-    net = PRESETS[name](num_views=views)
-    if name == "cpu":
-        # 8 epochs over ~600 scenes, 4 random views a step (more scenes per second than all 10), a
-        # higher rate halved every 3 epochs: ~80 minutes under torchrun on 2 cores (~10 min an
-        # epoch). The earlier 2 epochs, halved after 1, stopped while the loss still fell: the same
-        # data for 8 epochs took the test N1 median from 0.88 to 0.73 x the hull's (docs/history.md).
-        return TrainConfig(net=net, epochs=8, lr=4e-4, lr_halve_epochs=3, views_per_step=4)
-    return TrainConfig(net=net)
 
 
 # ---- one scene -> network tensors ---------------------------------------------------------------

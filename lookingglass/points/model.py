@@ -49,13 +49,14 @@ import torch.nn.functional as F
 from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
+from ..configio import setting
+from ..errors import ConfigError
 from .features import FEATURE_COLUMNS, NUM_FEATURES
 
 __all__ = [
     "PointNetConfig",
     "paper_config",
     "cpu_config",
-    "PRESETS",
     "PointNet",
     "farthest_point_sample",
     "ball_query",
@@ -93,20 +94,20 @@ class PointNetConfig:
     # Weights for fewer input columns may start a fine-tune (PointNet.widen_initial_state).
     FINE_TUNE_WIDEN = frozenset({"in_features"})
 
-    in_features: int = NUM_FEATURES
-    num_points: int = 20000
+    in_features: int = setting(NUM_FEATURES, "Input columns read from the features (the first in_features).")
+    num_points: int = setting(20000, "Points per cloud the stage samples on the hull.")
     centres: tuple[int, ...] = (1024, 256, 64, 16)
     radii: tuple[float, ...] = (0.1, 0.2, 0.4, 0.8)
     neighbours: tuple[int, ...] = (64, 32, 32, 32)
     sa_mlps: tuple[tuple[int, ...], ...] = ((64, 64), (128, 128), (256, 256), (512, 512))
     fp_mlps: tuple[tuple[int, ...], ...] = ((512, 256), (256, 128), (128, 64), (64,))
-    gn_group_size: int = 16
-    offset_scale: float = 0.25
-    average_pooling: bool = True
-    normal_difference: bool = True
-    normal_skip: bool = True
+    gn_group_size: int = setting(16, "Channels per GroupNorm group.")
+    offset_scale: float = setting(0.25, "offset = offset_scale x tanh(.), in the normalized frame.")
+    average_pooling: bool = setting(True, "Average ball features over the ball's members (else: max pooling).")
+    normal_difference: bool = setting(True, "Neighbours' grouping features get their normal minus the centre's.")
+    normal_skip: bool = setting(True, "Skip links get the level's normals and their difference to the coarser level's.")
     # Ours, not the paper's: start at the hull (zero offset, the mapped normal); see the module doc.
-    residual: bool = False
+    residual: bool = setting(False, "Start at the hull: zero offset and the mapped normal (ours).")
 
     def __post_init__(self) -> None:
         self.centres = tuple(int(c) for c in self.centres)
@@ -117,16 +118,16 @@ class PointNetConfig:
         levels = len(self.centres)
         if levels == 0 or not (len(self.radii) == len(self.neighbours) == len(self.sa_mlps)
                                == len(self.fp_mlps) == levels):
-            raise ValueError("centres, radii, neighbours, sa_mlps and fp_mlps need one entry per level "
-                             f"(got {len(self.centres)}, {len(self.radii)}, {len(self.neighbours)}, "
-                             f"{len(self.sa_mlps)}, {len(self.fp_mlps)})")
+            raise ConfigError("centres, radii, neighbours, sa_mlps and fp_mlps need one entry per level "
+                              f"(got {len(self.centres)}, {len(self.radii)}, {len(self.neighbours)}, "
+                              f"{len(self.sa_mlps)}, {len(self.fp_mlps)})")
         if any(not m for m in self.sa_mlps + self.fp_mlps):
-            raise ValueError("every MLP needs at least one layer")
+            raise ConfigError("every MLP needs at least one layer")
         if min(self.centres) < 1 or min(self.neighbours) < 1 or min(self.radii) <= 0:
-            raise ValueError("centres, neighbours and radii must be positive")
+            raise ConfigError("centres, neighbours and radii must be positive")
         if self.in_features < NORMAL_COLUMNS.stop:
-            raise ValueError(f"in_features must hold xyz and the mapped normal (>= {NORMAL_COLUMNS.stop}), "
-                             f"got {self.in_features}")
+            raise ConfigError(f"in_features must hold xyz and the mapped normal (>= {NORMAL_COLUMNS.stop}), "
+                              f"got {self.in_features}")
 
     @property
     def levels(self) -> int:
@@ -148,9 +149,6 @@ def cpu_config(**kw) -> PointNetConfig:
                 fp_mlps=((256, 128), (128, 64), (64, 32), (32,)), gn_group_size=8, residual=True)
     base.update(kw)
     return PointNetConfig(**base)
-
-
-PRESETS = {"paper": paper_config, "cpu": cpu_config}
 
 
 # ---------------------------------------------------------------------------------------------

@@ -21,6 +21,7 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
+from ..configio import check_ranges, setting
 from ..errors import ConfigError, LookingGlassError
 from ..hull import VisualHull
 from ..normals.predict import NormalMaps
@@ -63,23 +64,23 @@ class SurfaceConfig:
     11 / 4 against 112; from 3 on, real handles narrowed by PNet's inward move close too (scene
     25, genus 2: CD 17.6 -> 26.5 at 3, 39.1 at 4)."""
 
-    points: int = 40000
-    strategy: str = "RE"
-    depth: int = 8
-    point_weight: float = 4.0
-    samples_per_node: float = 1.5
-    smoothing_neighbours: int = 32
-    close_radius: int = 2
-    seed: int = 0
-    point_weights: str = ""
+    points: int = setting(40000, "Points on the hull for the surface (more keeps narrower slits and takes longer).",
+                          range=(1, None), cli_range=(1000, 1_000_000))
+    strategy: str = setting("RE", "Feature mapping: AV, NE or RE.")
+    depth: int = setting(8, "Poisson octree depth.", range=(1, 16))
+    point_weight: float = setting(4.0, "Screened Poisson's point weight.", range=(0, None))
+    samples_per_node: float = setting(1.5, "Screened Poisson's samples per node.", range=(0, None))
+    smoothing_neighbours: int = setting(32, "PNet's offsets and normals are averaged over this many nearest points "
+                                            "(0 or 1: not at all).", range=(0, None))
+    close_radius: int = setting(2, "Fill tunnels narrower than about twice this many Poisson voxels (0: never).",
+                                range=(0, None))
+    seed: int = setting(0, "Point-sampling seed.")
+    point_weights: str = setting("", "PNet weights (\"\": the shipped ones, if any).")
 
     def __post_init__(self) -> None:
         if self.strategy.upper() not in STRATEGIES:
             raise ConfigError(f"strategy must be one of {STRATEGIES}, got {self.strategy!r}")
-        if self.points < 1:
-            raise ConfigError(f"points must be positive, got {self.points}")
-        if self.close_radius < 0:
-            raise ConfigError(f"close_radius must be 0 or more, got {self.close_radius}")
+        check_ranges(self)
 
 
 @dataclass

@@ -52,7 +52,8 @@ import trimesh
 from torch import Tensor
 
 from .. import training
-from ..errors import LookingGlassError
+from ..configio import check_ranges, setting
+from ..errors import ConfigError, LookingGlassError
 from ..fileio import sha256_file, write_atomic
 from ..physics.optics import IOR_GLASS
 from ..hull import VisualHull
@@ -64,11 +65,10 @@ from ..threads import torch_threads
 from ..weights import load_normal_net
 from .features import FEATURE_COLUMNS, NUM_FEATURES, STRATEGIES, map_features, sample_hull_points
 from .losses import LOSSES, PointLoss, view_targets
-from .model import PRESETS, PointNet, PointNetConfig
+from .model import PointNet, PointNetConfig
 
 __all__ = [
     "PointTrainConfig",
-    "point_train_preset",
     "TARGET_KEYS",
     "scene_point_data",
     "prepare_features",
@@ -95,40 +95,28 @@ class PointTrainConfig:
     ior: the glass's index of refraction, for the rendering error of the features."""
 
     net: PointNetConfig = field(default_factory=PointNetConfig)
-    loss: str = "chamfer"
-    strategy: str = "RE"
-    epochs: int = 10
-    lr: float = 1e-4
-    lr_halve_epochs: int = 2
-    checkpoint_every: int = 50
-    seed: int = 0
-    max_scenes: int = 0
-    ior: float = IOR_GLASS
-    init: str = ""  # weights to fine-tune from ("" : random start)
+    loss: str = setting("chamfer", f"Training loss: {', '.join(LOSSES)} (chamfer: the paper's best).")
+    strategy: str = setting("RE", f"Feature mapping: {', '.join(STRATEGIES)} (RE: the paper's best).")
+    epochs: int = setting(10, "Passes over the scenes.", range=(1, None))
+    lr: float = setting(1e-4, "Initial learning rate.", range=(0, None))
+    lr_halve_epochs: int = setting(2, "The learning rate halves every this many epochs.", range=(1, None))
+    checkpoint_every: int = setting(50, "Steps between checkpoints.", range=(1, None))
+    seed: int = setting(0, "Initialization, shuffling and point-sampling seed.")
+    max_scenes: int = setting(0, "Use only the first N scenes (0: all).", range=(0, None))
+    ior: float = setting(IOR_GLASS, "Index of refraction of the glass.", range=(1, None))
+    init: str = setting("", "Start from these weights.safetensors (fine-tuning; same network config) instead of "
+                            "a random initialization.")
 
     def __post_init__(self) -> None:
         self.strategy = str(self.strategy).upper()
         if self.loss not in LOSSES:
-            raise LookingGlassError(f"unknown point loss {self.loss!r} (choose from {', '.join(LOSSES)})")
+            raise ConfigError(f"unknown point loss {self.loss!r} (choose from {', '.join(LOSSES)})")
         if self.strategy not in STRATEGIES:
-            raise LookingGlassError(f"unknown feature-mapping strategy {self.strategy!r} "
-                                    f"(choose from {', '.join(STRATEGIES)})")
+            raise ConfigError(f"unknown feature-mapping strategy {self.strategy!r} "
+                              f"(choose from {', '.join(STRATEGIES)})")
         if self.loss == "view" and self.strategy == "AV":
-            raise LookingGlassError('the "view" loss needs a strategy that chooses a view (NE or RE), not AV')
-
-
-def point_train_preset(name: str) -> PointTrainConfig:
-    """"paper": the paper's PNet on 20 000 points, lr 1e-4 halved every 2 of 10 epochs.
-    "cpu": the small PNet on 4096 points (model.cpu_config, residual start), a higher rate
-    (the residual start keeps the first steps tame) halved every 2 of 6 epochs. Measured on a
-    2-core machine with another training job on it, 1 thread, 128x96 images, 10 views: feature
-    preparation ~4 s a scene (cost volume and normal net ~2.6 s of it), then ~0.33 s a step:
-    for 600 scenes ~40 min of features once and ~3.5 min an epoch."""
-    if name not in PRESETS:
-        raise LookingGlassError(f"unknown preset '{name}' (choose from {', '.join(PRESETS)})")
-    if name == "cpu":
-        return PointTrainConfig(net=PRESETS[name](), epochs=6, lr=3e-4, lr_halve_epochs=2, checkpoint_every=100)
-    return PointTrainConfig(net=PRESETS[name]())
+            raise ConfigError('the "view" loss needs a strategy that chooses a view (NE or RE), not AV')
+        check_ranges(self)
 
 
 # ---- one scene -> cached arrays ---------------------------------------------------------------------

@@ -1,0 +1,96 @@
+"""Config options generated from the dataclasses (lookingglass/cliconfig.py): --help shows them
+with the preset's defaults, given values land over the chosen preset, bad ones are one clear line."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+from typer.testing import CliRunner
+
+from lookingglass import cli
+from lookingglass.normals.model import cpu_config as normal_cpu_config
+from lookingglass.presets import preset
+
+CLI = [sys.executable, "-m", "lookingglass.cli"]
+# rich shortens long option names in narrow help; this checkout's package whatever the cwd
+WIDE = {**os.environ, "COLUMNS": "250", "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+
+
+def help_line(command: str, flag: str) -> str:
+    """The --help row of `flag` in `command`'s help (wide enough that it fits one line)."""
+    proc = subprocess.run([*CLI, command, "--help"], capture_output=True, text=True, timeout=120, env=WIDE)
+    assert proc.returncode == 0, proc.stderr
+    rows = [line for line in proc.stdout.splitlines() if f" {flag} " in line or f" {flag}," in line]
+    assert len(rows) == 1, (flag, proc.stdout)
+    return rows[0]
+
+
+@pytest.mark.parametrize("command, flag, shown", [
+    ("reconstruct", "--hull.resolution,--hull-resolution", ["Range: 16 to 1024", "[default: 128]"]),
+    ("reconstruct", "--normals.latent.iterations-n2", ["(paper: 500)", "[default: 10]"]),
+    ("reconstruct", "--surface.point-weight", ["[default: 4.0]"]),
+    ("reconstruct", "--stop-after", ["[default: surface]"]),
+    ("train-normals", "--net.groups", ["(paper: 16)", "[default: 8]"]),
+    ("train-normals", "--epochs", ["(paper: 10)", "[default: 8]"]),
+    ("train-normals", "--net.num-views,--views", ["[default: 10]"]),
+    ("train-points", "--net.num-points", ["(paper: 20000)", "[default: 4096]"]),
+    ("train-points", "--checkpoint-every", ["[default: 100]"]),
+    ("generate", "--shape.target-faces", ["[default: 24000]"]),
+])
+def test_help_lists_config_fields_with_the_presets_defaults(command, flag, shown):
+    line = help_line(command, flag)
+    assert all(text in line for text in shown), line
+
+
+@pytest.mark.parametrize("args, said", [
+    (["reconstruct", "no_scene", "--out", "o", "--hull.resolution", "8"], "--hull-resolution=8: resolution must be in"),
+    (["reconstruct", "no_scene", "--out", "o", "--surface.point-weight", "-1"],
+     "--surface.point-weight=-1.0: point_weight must be at least 0"),
+    (["train-normals", "--data", "d", "--out", "o", "--epochs", "0"], "--epochs=0: epochs must be at least 1"),
+    (["train-points", "--data", "d", "--normals", "n", "--out", "o", "--loss", "view", "--strategy", "AV"],
+     "--loss=view, --strategy=AV:"),
+    (["generate", "--out", "o", "--scenes", "1", "--samples-per-axis", "0"], "samples_per_axis must be at least 1"),
+])
+def test_out_of_range_flag_is_one_line_naming_the_field(tmp_path, args, said):
+    proc = subprocess.run([*CLI, *args], capture_output=True, text=True, timeout=120, cwd=tmp_path, env=WIDE)
+    assert proc.returncode == 2 and said in proc.stderr, proc.stderr
+    assert proc.stderr.strip().count("\n") == 0 and "Traceback" not in proc.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_given_values_land_over_the_chosen_preset_and_defaults_do_not(monkeypatch):
+    """--preset paper keeps paper's 500 + 500 latent steps where no flag changes them; an alias, a
+    nested field and a bool reach the config; options not given keep the preset's values."""
+    seen = {}
+    monkeypatch.setattr("lookingglass.pipeline.reconstruct",
+                        lambda scene, out, config, **kw: seen.setdefault("config", config) and {"total_seconds": 0})
+    result = CliRunner().invoke(cli.app, ["reconstruct", "scene", "--out", "o", "--preset", "paper", "--quiet",
+                                          "--normals.latent.iterations-both", "7", "--hull-resolution", "64",
+                                          "--surface.point-weight", "2", "--weights", "w.safetensors"])
+    assert result.exit_code == 0, result.output
+    config = seen["config"]
+    assert (config.normals.latent.iterations_n2, config.normals.latent.iterations_both) == (500, 7)
+    assert config.hull.resolution == 64 and config.surface.point_weight == 2.0
+    assert config.normals.weights == "w.safetensors" and config.surface.points == 40000
+    assert config.hull == type(config.hull)(resolution=64)
+
+
+def test_train_normals_resolves_the_same_config_as_before(monkeypatch):
+    """The run folder's config.json must not change for the same flags: cpu preset, --views 5,
+    --variant wr, the dataset's resolution; given values override the preset's schedule."""
+    seen = {}
+    dataset = SimpleNamespace(config=SimpleNamespace(width=64, height=48))
+    monkeypatch.setattr("lookingglass.data.torch_dataset.TransparentSceneDataset", lambda *a, **kw: dataset)
+    monkeypatch.setattr("lookingglass.normals.train.train_normals",
+                        lambda data, out, config, **kw: seen.setdefault("config", config))
+    result = CliRunner().invoke(cli.app, ["train-normals", "--data", "d", "--out", "o", "--views", "5", "--variant",
+                                          "wr", "--epochs", "2", "--lr", "2e-4", "--init", "w.safetensors",
+                                          "--device", "cpu", "--quiet"])
+    assert result.exit_code == 0, result.output
+    net = normal_cpu_config(num_views=5, width=64, height=48, use_cost_volume=False)
+    expected = preset("cpu").normal_training
+    assert seen["config"] == type(expected)(net=net, epochs=2, lr=2e-4, lr_halve_epochs=3, views_per_step=4,
+                                            init="w.safetensors")
