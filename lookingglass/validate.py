@@ -13,6 +13,7 @@ the same, so an interrupted run resumes); OUT/validation.json the records and fa
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -20,7 +21,7 @@ import numpy as np
 import torch
 
 from .capture.scene import load_capture
-from .config import PipelineConfig, config_to_dict
+from .config import PipelineConfig, config_to_dict, resolve_device
 from .errors import LookingGlassError
 from .fileio import write_json
 from .metrics import load_mesh, shape_metrics
@@ -88,6 +89,8 @@ def evaluate_validation_set(root, out, config: PipelineConfig | None = None, nam
                                 root / "index.json") from None
     names = names or list(index["shapes"])
     config = config or PipelineConfig(device="cpu")
+    device = resolve_device(config.device)  # as reconstruct saves it, so a finished run is recognized
+    config = dataclasses.replace(config, device=device, hull=dataclasses.replace(config.hull, device=device))
     records = []
     for name in reporter.track(names, description="validation scenes"):
         scene = root / name / "scene"
