@@ -28,7 +28,7 @@ PRESET_HELP = (f"Preset the config options start from: {', '.join(PRESET_NAMES)}
 
 # The generated config options of each command (lookingglass/cliconfig.py), with the shorter
 # spellings the docs use kept as aliases.
-RECONSTRUCT_OPTIONS = ConfigOptions("pipeline", exclude=frozenset({"hull.device"}), aliases={
+RECONSTRUCT_OPTIONS = ConfigOptions("pipeline", exclude=frozenset({"hull.device", "seed"}), aliases={
     "hull.resolution": "--hull-resolution", "surface.points": "--surface-points", "normals.weights": "--weights",
     "normals.views": "--views"})
 GENERATE_OPTIONS = ConfigOptions("dataset", exclude=frozenset({"preset", "hull.num_threads", "hull.device"}))

@@ -38,6 +38,14 @@ class PipelineConfig:
         if not (self.device in ("auto", "cpu", "cuda") or self.device.startswith("cuda:")):
             raise ConfigError(f"device must be cpu, cuda, cuda:N or auto, got {self.device!r}")
 
+    def resolved(self) -> PipelineConfig:
+        """This config with its device resolved ("auto" -> what is present) and the hull carving on
+        it: what `reconstruct` runs and saves in report.json."""
+        import dataclasses
+
+        device = resolve_device(self.device)
+        return dataclasses.replace(self, device=device, hull=dataclasses.replace(self.hull, device=device))
+
     @classmethod
     def from_json(cls, path) -> PipelineConfig:
         """The config of a finished run: its report.json (the "config" entry) or a config JSON."""

@@ -23,14 +23,14 @@ import trimesh
 
 from . import __version__
 from .capture.scene import load_capture
-from .config import STAGES, PipelineConfig, config_to_dict, resolve_device
+from .config import STAGES, PipelineConfig, config_to_dict
 from .errors import LookingGlassError
 from .fileio import write_atomic, write_json
 from .hull import VisualHull, carve_visual_hull
 from .normals.stage import NormalStageResult, run_normal_stage, write_normal_views
 from .points.stage import surface_from_normals
 from .progress import Reporter, peak_memory_mb
-from .weights import load_normal_net, load_point_net, shipped_weights
+from .weights import NormalWeights, load_normal_net, load_point_net, shipped_weights
 
 
 
@@ -78,24 +78,34 @@ def write_points(path: Path, points: np.ndarray, normals: np.ndarray) -> Path:
     return write_atomic(path, lambda tmp: Path(tmp).write_bytes(header.encode("ascii") + records.tobytes()))
 
 
-def _normals(capture, hull: VisualHull, config: PipelineConfig, device: str, out_dir: Path,
-             reporter: Reporter) -> tuple[NormalStageResult | None, int]:
-    """The normals stage with the weights the config names (or the shipped ones for the nearest
-    view count); writes OUT/normals/. (None, 0) when no weights ship."""
+def _normal_weights(capture, config: PipelineConfig) -> tuple[NormalWeights | None, int, int]:
+    """The normal net the config names (or the shipped one for the nearest view count), the view
+    count it was trained for and the one asked for; checked against the capture before any stage
+    runs (the net resizes the photos, so their aspect must be its own)."""
     requested = config.normals.views or capture.num_views
     path, trained_views = (Path(config.normals.weights), requested) if config.normals.weights \
         else shipped_weights(requested)
     if path is None:
-        reporter.warn("no trained normal-network weights ship with this build: stopping after the visual hull")
-        return None, 0
+        return None, 0, requested
     weights = load_normal_net(path)
+    width, height = weights.net.cfg.width, weights.net.cfg.height
+    if abs(capture.width / capture.height - width / height) > 0.02 * width / height:
+        raise LookingGlassError(f"the photos are {capture.width}x{capture.height}, but the normal network takes "
+                                f"{width}x{height} images (aspect {width / height:.3f}): crop the photos, masks and "
+                                "field of view to that aspect, or stop after the visual hull", capture.root)
+    return weights, trained_views, requested
+
+
+def _normals(capture, hull: VisualHull, weights: NormalWeights, trained_views: int, requested: int,
+             config: PipelineConfig, out_dir: Path, reporter: Reporter) -> NormalStageResult:
+    """The normals stage; writes OUT/normals/."""
     with reporter.stage("normals", "normals (network + latent optimization)") as rec:
-        result = run_normal_stage(capture, hull, weights, config.normals.latent, device)
+        result = run_normal_stage(capture, hull, weights, config.normals.latent, config.device)
         write_normal_views(out_dir / "normals", result)
         rec.update(result.report, trained_views=trained_views)
         if trained_views != requested:
             rec["note"] = f"{requested} views: using the weights trained for {trained_views}"
-    return result, trained_views
+    return result
 
 
 def _surface(hull: VisualHull, normals: NormalStageResult, config: PipelineConfig, trained_views: int,
@@ -107,6 +117,9 @@ def _surface(hull: VisualHull, normals: NormalStageResult, config: PipelineConfi
     point_net = load_point_net(path) if path is not None else None
     if point_net is not None:
         point_net.net.to(device)
+        if point_net.strategy != config.surface.strategy:
+            reporter.warn(f"surface.strategy {config.surface.strategy} is not used: the point network maps its "
+                          f"features with {point_net.strategy}, the strategy it was trained on")
     with reporter.stage("surface", "surface (feature mapping + PNet + Poisson)") as rec:
         mesh, oriented = surface_from_normals(hull, normals.maps, config.surface, point_net)
         write_points(out_dir / "points.ply", oriented.points, oriented.normals)
@@ -129,8 +142,8 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
     start = time.perf_counter()
     # the device is resolved once, for every stage (the hull carves where the networks run), and
     # saved resolved in report.json's config
-    device = resolve_device(config.device)
-    config = dataclasses.replace(config, device=device, hull=dataclasses.replace(config.hull, device=device))
+    config = config.resolved()
+    device = config.device
     if scene_dir.resolve() == out_dir.resolve():
         raise LookingGlassError("output folder must differ from the scene folder", out_dir)
     prepare_output_dir(out_dir, force)
@@ -140,6 +153,8 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
         with reporter.stage("load", f"load {scene_dir}") as rec:
             capture = load_capture(scene_dir)
             rec.update(views=capture.num_views, image_size=[capture.width, capture.height])
+            weights, trained_views, requested = _normal_weights(capture, config) if "normals" in wanted \
+                else (None, 0, 0)
 
         with reporter.stage("visual_hull", "visual hull") as rec:
             hull = carve_visual_hull(capture.masks, capture.cameras, config.hull)
@@ -148,9 +163,11 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
                        timings={k: round(float(v), 3) for k, v in hull.timings.items()})
 
         best, best_stage = hull.mesh, "visual_hull"
-        normals, trained_views = None, 0
-        if "normals" in wanted:
-            normals, trained_views = _normals(capture, hull, config, device, out_dir, reporter)
+        normals = None
+        if "normals" in wanted and weights is None:
+            reporter.warn("no trained normal-network weights ship with this build: stopping after the visual hull")
+        elif "normals" in wanted:
+            normals = _normals(capture, hull, weights, trained_views, requested, config, out_dir, reporter)
         if normals is not None and "surface" in wanted:
             best = _surface(hull, normals, config, trained_views, device, out_dir, reporter)
             best_stage = "surface"

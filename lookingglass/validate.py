@@ -13,7 +13,6 @@ the same, so an interrupted run resumes); OUT/validation.json the records and fa
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 
@@ -21,22 +20,16 @@ import numpy as np
 import torch
 
 from .capture.scene import load_capture
-from .config import PipelineConfig, config_to_dict, resolve_device
+from .config import PipelineConfig, config_to_dict
 from .errors import LookingGlassError
-from .fileio import write_json
-from .metrics import load_mesh, shape_metrics
+from .fileio import sha256_file, write_json
+from .metrics import load_mesh, normal_angle_errors, shape_metrics
 from .pipeline import reconstruct
 from .progress import Reporter
 from .render.tracer import trace_two_bounce
+from .weights import WEIGHTS_DIR
 
 SHAPE_METRICS = ("cd", "metro", "cdn_mean", "cdn_med")
-
-
-def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Degrees between rows of (N, 3) vectors."""
-    a = a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-12)
-    b = b / np.maximum(np.linalg.norm(b, axis=-1, keepdims=True), 1e-12)
-    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), (a * b).sum(-1)))
 
 
 def normal_errors(result_dir: Path, capture, gt, hull) -> dict:
@@ -45,33 +38,45 @@ def normal_errors(result_dir: Path, capture, gt, hull) -> dict:
     views = sorted((result_dir / "normals").glob("view_*.npz"))
     if not views:
         return {}
-    maps = [np.load(p) for p in views]
+    maps = []
+    for path in views:
+        with np.load(path) as z:
+            maps.append({k: z[k] for k in ("n1", "n2", "mask")})
     H, W = maps[0]["mask"].shape
     cams = capture.cameras.with_resolution(W, H)
     truth, ours = trace_two_bounce(gt, cams, ior=capture.ior), trace_two_bounce(hull, cams, ior=capture.ior)
-    mask = np.stack([m["mask"] for m in maps]) & truth.mask.numpy()
-    two = mask & truth.valid.numpy()
+    mask = torch.as_tensor(np.stack([m["mask"] for m in maps])) & truth.mask
+    two = mask & truth.valid
     out = {}
-    for name, n1, n2 in (("hull", ours.normal1.numpy(), ours.normal2.numpy()),
+    for name, n1, n2 in (("hull", ours.normal1, ours.normal2),
                          ("pred", np.stack([m["n1"] for m in maps]), np.stack([m["n2"] for m in maps]))):
-        out[f"n1_median_{name}"] = float(np.median(_angles(n1[mask], truth.normal1.numpy()[mask])))
-        out[f"n2_median_{name}"] = float(np.median(_angles(n2[two], truth.normal2.numpy()[two])))
+        out[f"n1_median_{name}"] = normal_angle_errors(n1, truth.normal1, mask)["median"]
+        out[f"n2_median_{name}"] = normal_angle_errors(n2, truth.normal2, two)["median"]
     report = json.loads((result_dir / "report.json").read_text())
     stage = next((s for s in report["stages"] if s["name"] == "normals"), {})
     out["render_error_hull"], out["render_error_pred"] = stage.get("render_error_vh"), stage.get("render_error")
     return out
 
 
+def _weights_fingerprint(config: PipelineConfig) -> dict:
+    """SHA-256 of every weights file the config may load (the shipped ones and any it names), so a
+    reconstruction made with other weights is not reused."""
+    files = sorted(WEIGHTS_DIR.glob("*.safetensors"))
+    files += [Path(p) for p in (config.normals.weights, config.surface.point_weights) if p]
+    return {str(p): sha256_file(p) for p in files if p.is_file()}
+
+
 def _reconstructed(scene: Path, out: Path, config: PipelineConfig, reporter: Reporter) -> None:
-    """Run `reconstruct` into OUT unless a finished run with the same config is there."""
-    report = out / "report.json"
-    if report.exists() and (out / "mesh.ply").exists():
-        try:
-            if json.loads(report.read_text()).get("config") == config_to_dict(config):
-                return
-        except ValueError:
-            pass
+    """Run `reconstruct` into OUT unless a finished run with the same config and weights is there."""
+    key = {"config": config_to_dict(config), "weights": _weights_fingerprint(config)}
+    stamp = out / "validate_key.json"
+    try:
+        if (out / "mesh.ply").exists() and json.loads(stamp.read_text()) == json.loads(json.dumps(key)):
+            return
+    except (OSError, ValueError):
+        pass
     reconstruct(scene, out, config, force=True, reporter=reporter)
+    write_json(stamp, key)
 
 
 def evaluate_validation_set(root, out, config: PipelineConfig | None = None, names: list[str] | None = None,
@@ -84,13 +89,13 @@ def evaluate_validation_set(root, out, config: PipelineConfig | None = None, nam
     reporter = reporter or Reporter(quiet=True)
     try:
         index = json.loads((root / "index.json").read_text())
-    except (OSError, ValueError) as exc:
+        index["shapes"].items()
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
         raise LookingGlassError(f"not a validation set ({exc}); make one with generate-validation",
                                 root / "index.json") from None
     names = names or list(index["shapes"])
     config = config or PipelineConfig(device="cpu")
-    device = resolve_device(config.device)  # as reconstruct saves it, so a finished run is recognized
-    config = dataclasses.replace(config, device=device, hull=dataclasses.replace(config.hull, device=device))
+    config = config.resolved()  # as reconstruct saves it, so a finished run is recognized
     records = []
     for name in reporter.track(names, description="validation scenes"):
         scene = root / name / "scene"

@@ -143,7 +143,7 @@ class TransparentSceneDataset(Dataset):
         from ..hull import VisualHull
 
         frame = self.meta(index)["hull"]
-        return VisualHull.from_mesh(self.meshes(index)[1], frame["center"], frame["scale"],
+        return VisualHull.from_mesh(load_scene_mesh(self.scene_dirs[index], "hull"), frame["center"], frame["scale"],
                                     frame.get("voxel_size", float("nan")), frame.get("view_coverage", ()))
 
     def _target_mean(self, index: int) -> float:

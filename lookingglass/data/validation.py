@@ -24,6 +24,7 @@ Layout of OUT (resumable: a finished scene is skipped):
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Callable
 
@@ -36,7 +37,6 @@ from ..progress import Reporter
 from .shapes import normalize_to_unit_sphere
 
 EDGE = 0.03  # longest edge of the rendered CAD meshes, unit-sphere frame
-TEST_ENVMAPS = ("forest_slope_1k.hdr", "potsdamer_platz_1k.hdr")  # never lit a training scene
 
 
 def _boolean(op: str, meshes: list[trimesh.Trimesh]) -> trimesh.Trimesh:
@@ -170,7 +170,8 @@ def validation_shape(name: str, seed: int = 0) -> trimesh.Trimesh:
     if name not in SHAPES:
         raise LookingGlassError(f"unknown validation shape {name!r} (choose from {', '.join(SHAPES)})")
     mesh = SHAPES[name][1]()
-    rotation = trimesh.transformations.random_rotation_matrix(np.random.default_rng([seed, len(name)]).random(3))
+    draw = np.random.default_rng([seed, list(SHAPES).index(name)]).random(3)  # each shape its own rotation
+    rotation = trimesh.transformations.random_rotation_matrix(draw)
     mesh.apply_transform(rotation)
     mesh = normalize_to_unit_sphere(mesh)
     vertices, faces = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=EDGE)
@@ -187,6 +188,7 @@ def generate_validation_set(out, names: list[str] | None = None, views: int = 10
     finished scenes are kept. Returns OUT/index.json."""
     from ..capture.images import read_envmap
     from ..render.tracer import RenderConfig
+    from .dataset import DatasetConfig
     from .envmaps import default_envmap_folder
     from .rigs import paper_rig
     from .synthetic import render_capture
@@ -194,15 +196,25 @@ def generate_validation_set(out, names: list[str] | None = None, views: int = 10
     out, reporter = Path(out), reporter or Reporter(quiet=True)
     names = list(SHAPES) if names is None else names
     folder = Path(envmap_folder) if envmap_folder is not None else default_envmap_folder()
-    for k, name in enumerate(reporter.track(names, description="validation scenes")):
+    test_envmaps = DatasetConfig().test_envmaps  # the natural maps no training scene was lit by
+    for name in reporter.track(names, description="validation scenes"):
+        if name not in SHAPES:
+            raise LookingGlassError(f"unknown validation shape {name!r} (choose from {', '.join(SHAPES)})")
+        k = list(SHAPES).index(name)  # a shape's rig and map do not depend on which others are made
         scene_dir = out / name
         if (scene_dir / "ground_truth.ply").exists() and (scene_dir / "scene" / "scene.json").exists():
             continue
         mesh = validation_shape(name, seed)
-        env = read_envmap(folder / TEST_ENVMAPS[k % len(TEST_ENVMAPS)])
+        env = read_envmap(folder / test_envmaps[k % len(test_envmaps)])
         cameras = paper_rig(views, seed + k, width=size[0], height=size[1])
         render_capture(mesh, env, cameras, scene_dir / "scene", RenderConfig(samples_per_axis=samples_per_axis,
                                                                             seed=seed + k), overwrite=True)
         write_atomic(scene_dir / "ground_truth.ply", lambda p, m=mesh: m.export(p, file_type="ply"))
-    return write_json(out / "index.json", {"shapes": {n: SHAPES[n][0] for n in names}, "views": views,
-                                           "size": list(size), "samples_per_axis": samples_per_axis, "seed": seed})
+    settings = {"views": views, "size": list(size), "samples_per_axis": samples_per_axis, "seed": seed}
+    index_path = out / "index.json"
+    earlier = json.loads(index_path.read_text()) if index_path.exists() else {}
+    if earlier and {k: earlier.get(k) for k in settings} != settings:
+        raise LookingGlassError("the folder holds validation scenes made with other settings; pick another --out",
+                                index_path)
+    shapes = {**earlier.get("shapes", {}), **{n: SHAPES[n][0] for n in names}}
+    return write_json(index_path, {"shapes": shapes, **settings})

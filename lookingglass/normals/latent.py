@@ -12,6 +12,7 @@ from ..configio import check_ranges, setting
 from ..physics.camera import Cameras
 from ..physics.environment import EnvironmentMap
 from .model import NormalNet
+from ..physics.optics import IOR_GLASS
 from .render_layer import comparable, render_layer
 
 
@@ -34,10 +35,10 @@ class LatentOptConfig:
 
 
 def masked_render_loss(envmap: EnvironmentMap, n1: Tensor, n2: Tensor, cameras: Cameras, image: Tensor,
-                       mask: Tensor, view_dirs: Tensor | None = None) -> Tensor:
+                       mask: Tensor, view_dirs: Tensor | None = None, ior: float = IOR_GLASS) -> Tensor:
     """The paper's L = ||(I - (I^r + I^t)) ⊙ M^tr||², averaged over the usable pixels (in the mask
     and not TIR); the rendering is clipped like the input. n1, n2 (V,3,H,W) camera frame; image (V,H,W,3); mask (V,H,W)."""
-    out = render_layer(envmap, n1.permute(0, 2, 3, 1), n2.permute(0, 2, 3, 1), cameras, view_dirs=view_dirs)
+    out = render_layer(envmap, n1.permute(0, 2, 3, 1), n2.permute(0, 2, 3, 1), cameras, ior=ior, view_dirs=view_dirs)
     usable = (mask & ~out.tir).unsqueeze(-1).to(image.dtype)
     return (((image - comparable(out.image)) * usable) ** 2).sum() / (usable.sum() * 3).clamp(min=1)
 
@@ -62,7 +63,7 @@ def adam_step(param: Tensor, moments: tuple[Tensor, Tensor], t: int, lr: float,
 
 def optimize_latent(net: NormalNet, inputs: Tensor, cost_volume: Tensor | None, envmap: EnvironmentMap,
                     image: Tensor, mask: Tensor, cameras: Cameras, config: LatentOptConfig | None = None,
-                    ) -> tuple[Tensor, Tensor, list[float]]:
+                    ior: float = IOR_GLASS) -> tuple[Tensor, Tensor, list[float]]:
     """Returns the optimized (n1, n2), each (V,3,H,W), and the loss after every step."""
     config = config or LatentOptConfig()
     for p in net.parameters():
@@ -77,7 +78,7 @@ def optimize_latent(net: NormalNet, inputs: Tensor, cost_volume: Tensor | None, 
     history = []
     for step in range(config.iterations_n2 + config.iterations_both):
         n1, n2 = net.decode(latent, inputs)
-        loss = masked_render_loss(envmap, n1, n2, cameras, image, mask, view_dirs=dirs)
+        loss = masked_render_loss(envmap, n1, n2, cameras, image, mask, view_dirs=dirs, ior=ior)
         history.append(float(loss.detach()))
         if step < config.iterations_n2:
             loss = loss + config.identity_weight * (((n1 - n1_init) * m) ** 2).sum() / (m.sum() * 3).clamp(min=1)
@@ -85,5 +86,5 @@ def optimize_latent(net: NormalNet, inputs: Tensor, cost_volume: Tensor | None, 
         adam_step(latent, moments, step + 1, config.lr)
     with torch.no_grad():
         n1, n2 = net.decode(latent, inputs)
-        history.append(float(masked_render_loss(envmap, n1, n2, cameras, image, mask, view_dirs=dirs)))
+        history.append(float(masked_render_loss(envmap, n1, n2, cameras, image, mask, view_dirs=dirs, ior=ior)))
     return n1, n2, history

@@ -59,7 +59,7 @@ def network_normals(net: NormalNet, x: NormalInputs, latent: LatentOptConfig | N
     """(n1, n2) (V,H,W,3) camera frame from NNet, latent-optimized when `latent` has steps."""
     inputs, cost_volume = network_tensors(x, net.cfg)
     if latent is not None and latent.iterations_n2 + latent.iterations_both > 0:
-        n1, n2, _ = optimize_latent(net, inputs, cost_volume, x.envmap, x.image, x.mask, x.cameras, latent)
+        n1, n2, _ = optimize_latent(net, inputs, cost_volume, x.envmap, x.image, x.mask, x.cameras, latent, x.ior)
     else:
         with torch.no_grad():
             n1, n2 = net(inputs, cost_volume)
