@@ -175,23 +175,34 @@ def subdivide_ls3_loop(vertices: np.ndarray, faces: np.ndarray, iterations: int,
         ms.meshing_surface_subdivision_ls3_loop(
             loopweight="Loop", iterations=int(iterations), threshold=pymeshlab.PercentageValue(100.0 * threshold))
 
+    def finite() -> bool:
+        return bool(np.isfinite(ms.current_mesh().vertex_matrix()).all())
+
     try:
         subdivide()
+        if finite():
+            m = ms.current_mesh()
+            return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
     except pymeshlab.PyMeshLabException:
-        # Marching cubes can pinch two sheets of the surface along an edge or at a vertex where the
-        # surface is one voxel thin; LS3 needs a 2-manifold. Split the pinches and close what opens.
-        repair_pinches(ms)
-        repaired = ms.current_mesh()
-        repaired_v, repaired_f = repaired.vertex_matrix().copy(), repaired.face_matrix().copy()
+        pass
+    # Marching cubes can pinch two sheets of the surface along an edge or at a vertex where the
+    # surface is one voxel thin; LS3 needs a 2-manifold (it raises, or returns NaN positions).
+    # Split the pinches, close what opens, and subdivide again.
+    ms = _meshset(vertices, faces)
+    repair_pinches(ms)
+    repaired = ms.current_mesh()
+    repaired_v, repaired_f = repaired.vertex_matrix().copy(), repaired.face_matrix().astype(np.int64)
+    try:
         subdivide()
         ms.meshing_remove_unreferenced_vertices()
-        if not np.isfinite(ms.current_mesh().vertex_matrix()).all():
-            # LS3 can still fail on a repaired surface, with NaN positions; smooth it without
-            # subdividing instead (Taubin: no shrinkage), rather than hand on a broken surface.
-            repaired_f = repaired_f.astype(np.int64)
-            return taubin_smooth(repaired_v.astype(np.float64), repaired_f, 4 * int(iterations)), repaired_f
-    m = ms.current_mesh()
-    return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
+        if finite():
+            m = ms.current_mesh()
+            return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
+    except pymeshlab.PyMeshLabException:
+        pass
+    # LS3 can still fail on a repaired surface; smooth it without subdividing instead (Taubin: no
+    # shrinkage), rather than hand on a broken surface.
+    return taubin_smooth(repaired_v.astype(np.float64), repaired_f, 4 * int(iterations)), repaired_f
 
 
 # ---------------------------------------------------------------------------------------------
