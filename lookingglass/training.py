@@ -154,7 +154,8 @@ class TrainingSession:
         if self.ddp and device == "cuda":  # one GPU per process, as torchrun numbers them on each machine
             self.device = device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}"
             torch.cuda.set_device(self.device)
-        if self.ddp and not dist.is_initialized():
+        self.owns_group = self.ddp and not dist.is_initialized()
+        if self.owns_group:
             dist.init_process_group("nccl" if device.startswith("cuda") else "gloo")
         self.rank, self.world = dist_info()
         self.reporter = reporter or Reporter(quiet=self.rank != 0)
@@ -252,6 +253,10 @@ class TrainingSession:
                 extra["init_sha256"] = init_sha
             save_weights(self.run_dir, net, extra)
         self.barrier()
+        if self.owns_group:
+            # a process that exits with its gloo group alive can abort at teardown ("terminate
+            # called without an active exception", seen once in CI); close it while all wait here
+            dist.destroy_process_group()
         return metrics
 
 
