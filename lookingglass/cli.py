@@ -254,7 +254,8 @@ def train_normals(
     if variant is not None and variant not in VARIANTS:
         raise LookingGlassError(f"--variant must be one of {', '.join(VARIANTS)}, got {variant!r}")
     config = apply_config_flags(ctx, make_preset(preset).normal_training)
-    dataset = TransparentSceneDataset(data, "train", views=config.net.num_views, augment=True, seed=config.seed)
+    dataset = TransparentSceneDataset(data, "train", views=config.net.num_views, augment=config.augment, seed=config.seed,
+                                     photo_noise=config.photo_noise)
     # The network runs at the data's resolution (the dataset preset matches the network preset).
     net = dataclasses.replace(config.net, width=dataset.config.width, height=dataset.config.height)
     if variant is not None:

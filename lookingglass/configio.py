@@ -61,6 +61,8 @@ def out_of_range(name: str, value: Any, bounds: tuple | None) -> str | None:
     """'NAME must be in [low, high], got VALUE' when `value` is outside `bounds`, else None."""
     if bounds is None or value is None:
         return None
+    if isinstance(value, (tuple, list)):  # a fixed tuple: each element in the range
+        return next((p for p in (out_of_range(name, v, bounds) for v in value) if p), None)
     low, high = bounds
     if (low is None or value >= low) and (high is None or value <= high):
         return None

@@ -62,7 +62,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..configio import check_ranges, setting
-from ..errors import LookingGlassError
+from ..errors import ConfigError, LookingGlassError
 from ..hull import HullConfig
 from ..physics.constants import IOR_AIR, IOR_GLASS, PAPER_RENDER_FOV_X_DEG as PAPER_FOV_X_DEG
 from ..parallel import map_in_processes, worker_count
@@ -92,6 +92,12 @@ class DatasetConfig:
     ior, ext_ior: glass and air (DESIGN.md).
     p_procedural: chance that a scene's map is procedural rather than an augmented natural one.
     test_envmaps: natural maps (file names) kept for the test split; training uses the others.
+    family_weights: relative frequency of the shape families (families.FAMILIES order: procedural,
+        cad, handle, thin, blob); the default makes only procedural shapes, as the shipped splits.
+    hull_mask_scale: the hull is carved from masks rendered at s x (width, height), s drawn
+        log-uniformly from this range per scene: users' hulls come from full-resolution masks
+        (480x360 is 3.75), so a net trained on 128x96 hulls only never saw a good one. The network
+        inputs stay at width x height (`reconstruct` resizes photos to that size too).
     hull: visual hull settings (its num_threads is overridden: one thread per worker).
     shape: the procedural shape distribution.
     """
@@ -109,11 +115,20 @@ class DatasetConfig:
     ext_ior: float = setting(IOR_AIR, "Index of refraction around it.", range=(1, None))
     p_procedural: float = setting(0.5, "Chance that a scene's environment map is procedural.", range=(0, 1))
     test_envmaps: tuple[str, ...] = ("forest_slope_1k.hdr", "potsdamer_platz_1k.hdr")
+    family_weights: tuple[float, float, float, float, float] = setting(
+        (1.0, 0.0, 0.0, 0.0, 0.0), "Relative frequency of the shape families procedural, cad, handle, thin, blob.",
+        range=(0, None))
+    hull_mask_scale: tuple[float, float] = setting(
+        (1.0, 1.0), "The hull is carved from masks at s x the image size, s log-uniform in LO HI.", range=(1, 64))
     hull: HullConfig = field(default_factory=HullConfig)
     shape: ShapeConfig = field(default_factory=ShapeConfig)
 
     def __post_init__(self) -> None:
         check_ranges(self)
+        if sum(self.family_weights) <= 0:
+            raise ConfigError("family_weights: at least one family needs a positive weight")
+        if self.hull_mask_scale[0] > self.hull_mask_scale[1]:
+            raise ConfigError(f"hull_mask_scale: LO must be <= HI, got {self.hull_mask_scale}")
 
     def to_dict(self) -> dict:
         """JSON-normalized dict (tuples as lists), the form config.json holds."""
@@ -182,6 +197,24 @@ def scene_seeds(seed: int, split: str, index: int, attempt: int = 0) -> dict[str
     return {"shape": s[0], "rig": s[1], "envmap": s[2], "render": s[3] & 0xFFFFFFFF}
 
 
+FAMILY_EDGE = 0.05  # longest edge of a training CSG shape (unit sphere): ~1.5 px at 128x96
+
+
+def scene_draws(seeds: dict[str, int], config: DatasetConfig) -> tuple[str, float]:
+    """Scene's shape family and hull-mask scale (see DatasetConfig). The default config draws
+    nothing (procedural, 1.0), so scenes of the shipped splits are what they were."""
+    from .families import FAMILIES
+
+    weights = np.asarray(config.family_weights, float)
+    lo, hi = config.hull_mask_scale
+    if weights[1:].sum() == 0 and lo == hi:
+        return "procedural", float(lo)
+    rng = np.random.default_rng([seeds["shape"], 7])  # its own stream: the shape's is untouched
+    family = FAMILIES[int(rng.choice(len(FAMILIES), p=weights / weights.sum()))]
+    scale = float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+    return family, round(scale, 3)
+
+
 def split_envmap_names(config: DatasetConfig, split: str, folder=None) -> list[str] | None:
     """Natural map names a split may use: test -> config.test_envmaps, train -> the others.
     None when the folder has no natural maps (the sampler then errors unless p_procedural = 1)."""
@@ -240,6 +273,8 @@ def make_scene(index: int, split: str, seed: int, views: int, config: DatasetCon
     from .envmaps import EnvmapSampler
     from .rigs import paper_rig_params
     from ..hull import carve_visual_hull
+    from ..render.raycast import object_masks
+    from .families import random_family_shape
     from .shapes import random_shape, shape_stats
 
     seeds = scene_seeds(seed, split, index, attempt)
@@ -253,7 +288,12 @@ def make_scene(index: int, split: str, seed: int, views: int, config: DatasetCon
 
     with torch_threads(1), warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        mesh = _float32_vertices(random_shape(seeds["shape"], config.shape))
+        family, mask_scale = scene_draws(seeds, config)
+        if family == "procedural":
+            mesh = random_shape(seeds["shape"], config.shape)
+        else:
+            mesh = random_family_shape(family, seeds["shape"], max_edge=FAMILY_EDGE)
+        mesh = _float32_vertices(mesh)
         lap("shape")
         sampler = EnvmapSampler(envmap_folder, config.envmap_height, config.p_procedural, seed=seeds["envmap"],
                                 names=split_envmap_names(config, split, envmap_folder))
@@ -269,7 +309,13 @@ def make_scene(index: int, split: str, seed: int, views: int, config: DatasetCon
         lap("render")
         timings["render_two_bounce"] = round(res.stats.seconds_two_bounce, 4)
         hcfg = dataclasses.replace(config.hull, num_threads=1)
-        vh = carve_visual_hull(res.mask, cams, hcfg)
+        hull_masks, hull_cams = res.mask, cams
+        if mask_scale != 1.0:  # carve from sharper masks, as `reconstruct` does from a photo's own
+            hull_cams = Cameras.look_at(rig["origin"], rig["target"], rig["up"], config.fov_x_deg,
+                                        round(config.width * mask_scale), round(config.height * mask_scale))
+            hull_masks = object_masks(mesh, hull_cams)
+            lap("hull_masks")
+        vh = carve_visual_hull(hull_masks, hull_cams, hcfg)
         hull = _float32_vertices(vh.mesh)
         lap("hull")
         tb = trace_two_bounce(hull, cams, config.ior, config.ext_ior, threads=1)
@@ -290,7 +336,8 @@ def make_scene(index: int, split: str, seed: int, views: int, config: DatasetCon
                     "fov_x_deg": [float(config.fov_x_deg)] * views,
                     "polar_deg": rig["polar_deg"].tolist(), "azimuth_deg": rig["azimuth_deg"].tolist()},
         "envmap": env_desc, "envmap_height": config.envmap_height,
-        "shape": shape_stats(mesh),
+        "shape": {**shape_stats(mesh), "family": family},
+        "hull_mask_size": [round(config.width * mask_scale), round(config.height * mask_scale)],
         "hull": {"faces": int(len(hull.faces)), "center": vh.center.tolist(), "scale": float(vh.scale),
                  "voxel_size": float(vh.voxel_size), "view_coverage": vh.view_coverage.tolist()},
         "stats": {"object_pixels": int(maps["mask"].sum()), "valid_pixels": int(maps["valid"].sum()),

@@ -8,7 +8,10 @@ function, `exposure_factor`). The image becomes clip(k * image, 0, 1); the envir
 the same k and is *not* clipped (it stays HDR: the rendering layer must see the sun as bright as
 it is). target_mean is 0.5; with augment=True it is drawn from U[0.4, 0.6] per item.
 
-Augmentation: only that exposure draw. Mirroring an image would need a mirrored world per view
+Augmentation: that exposure draw and, with `photo_noise` > 0, phone-photo degradation with that
+chance per item: the normalized image is encoded to sRGB, gets Gaussian sensor noise (sigma up to
+`PHOTO_NOISE_SIGMA` of full scale) and 8-bit quantization, and is decoded again, as a JPEG or PNG
+photo reaches `reconstruct` (capture/images.py decodes with the same sRGB curve). Mirroring an image would need a mirrored world per view
 (one environment map cannot be mirrored consistently for every camera of a rig), and rotating
 world + environment about +y leaves every camera-frame quantity unchanged, so neither is done.
 The random state of item i is numpy default_rng([seed, i, n]) with n the number of times this
@@ -67,6 +70,19 @@ def scene_envmap(meta: dict, folder=None) -> np.ndarray:
     return _cached_envmap(desc, None if folder is None else str(folder), int(meta["envmap_height"]))
 
 
+PHOTO_NOISE_SIGMA = 0.01  # sensor noise, a fraction of the 8-bit range (2.5 levels at most)
+
+
+def as_8bit_photo(image: torch.Tensor, sigma: float, rng: np.random.Generator) -> torch.Tensor:
+    """`image` (linear, [0, 1]) as an 8-bit sRGB photo with Gaussian sensor noise `sigma` (of full
+    scale, added in sRGB) would decode: linear, quantized to the 256 levels' images."""
+    from ..capture.images import linear_to_srgb, srgb_to_linear
+
+    encoded = linear_to_srgb(image.numpy()) + rng.normal(0.0, sigma, image.shape).astype(np.float32)
+    levels = np.clip(np.round(encoded * 255.0), 0, 255) / 255.0
+    return torch.from_numpy(srgb_to_linear(levels))
+
+
 class TransparentSceneDataset(Dataset):
     """The finished scenes of ROOT/SPLIT, in index order.
 
@@ -74,14 +90,15 @@ class TransparentSceneDataset(Dataset):
     views: None for every stored view, or 5 / 10 / 20 to serve that paper rig out of a larger
         stored one (the rigs are nested; note the hull maps still come from all stored views,
         so they are better than a hull carved from the subset alone).
-    augment: draw the normalization's target mean from `mean_range` (else `target_mean`).
+    augment: draw the normalization's target mean from `mean_range` (else `target_mean`), and
+        degrade a `photo_noise` fraction of the items like 8-bit photos.
     seed: seed of the augmentation draws. envmap_folder: where the natural maps are
         (default `envmaps.default_envmap_folder()`).
     """
 
     def __init__(self, root, split: str = "train", views: int | None = None, augment: bool = False,
                  seed: int = 0, target_mean: float = 0.5, mean_range: tuple[float, float] = (0.4, 0.6),
-                 envmap_folder=None):
+                 envmap_folder=None, photo_noise: float = 0.0):
         if split not in SPLITS:
             raise LookingGlassError(f"split must be train or test, got {split!r}")
         self.split_dir = Path(root) / split
@@ -99,6 +116,7 @@ class TransparentSceneDataset(Dataset):
             raise LookingGlassError("no finished scenes (scene_*/meta.json)", self.split_dir)
         self.augment, self.seed = bool(augment), int(seed)
         self.target_mean, self.mean_range = float(target_mean), tuple(float(m) for m in mean_range)
+        self.photo_noise = float(photo_noise)
         self.envmap_folder = envmap_folder
         self._draws: dict[int, int] = defaultdict(int)
 
@@ -146,12 +164,15 @@ class TransparentSceneDataset(Dataset):
         return VisualHull.from_mesh(load_scene_mesh(self.scene_dirs[index], "hull"), frame["center"], frame["scale"],
                                     frame.get("voxel_size", float("nan")), frame.get("view_coverage", ()))
 
-    def _target_mean(self, index: int) -> float:
+    def _draws_for(self, index: int) -> tuple[float, float]:
+        """(target mean, photo-noise sigma; 0 = a clean image) of this serving of item `index`."""
         if not self.augment:
-            return self.target_mean
+            return self.target_mean, 0.0
         rng = np.random.default_rng([self.seed, int(index), self._draws[index]])
         self._draws[index] += 1
-        return float(rng.uniform(*self.mean_range))
+        target = float(rng.uniform(*self.mean_range))
+        noisy = rng.random() < self.photo_noise
+        return target, float(rng.uniform(0.0, PHOTO_NOISE_SIGMA)) if noisy else 0.0
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         from ..normals.inputs import exposure_factor
@@ -163,7 +184,7 @@ class TransparentSceneDataset(Dataset):
         maps, meta = load_maps(scene_dir), load_scene_meta(scene_dir)
         sel = slice(None) if self.view_index is None else self.view_index
         maps = {k: v[sel] for k, v in maps.items()}
-        target = self._target_mean(index)
+        target, sigma = self._draws_for(index)
         image = torch.from_numpy(maps["image"].astype(np.float32))
         try:
             factor = exposure_factor(image, target)
@@ -177,6 +198,9 @@ class TransparentSceneDataset(Dataset):
                 t = t.float().permute(0, 3, 1, 2).contiguous()
             out[key] = t
         out["image"] = (out["image"] * factor).clamp_(0.0, 1.0)
+        if sigma > 0:
+            out["image"] = as_8bit_photo(out["image"], sigma, np.random.default_rng([self.seed, index, 1 << 20,
+                                                                                     self._draws[index]]))
         out["envmap"] = (env * factor).permute(2, 0, 1).contiguous()
         cams = meta["cameras"]
         for key in ("origin", "target", "up", "fov_x_deg"):

@@ -12,9 +12,9 @@ Families:
   thin    thin plates and rods beside a body
   blob    smooth figurine-like solids (few concavities: the hull is nearly right)
 
-Sharp edges: the renderer shades with smooth vertex normals (tracer.py), so CAD meshes are
-subdivided to edges of `EDGE` (in the unit sphere) first; a crease is then rounded over one
-small triangle, like the bevel of a real part, and its faces stay flat.
+The shapes are built with the helpers of families.py (CSG, smooth blobs, `finish`: edges at most
+`EDGE`), which also draws random members of the same families for training data; the ten here are
+fixed, named shapes that no training seed makes.
 
 Layout of OUT (resumable: a finished scene is skipped):
   OUT/index.json                 {"shapes": {name: family}, "views", "size", "samples_per_axis"}
@@ -34,125 +34,76 @@ import trimesh
 from ..errors import LookingGlassError
 from ..fileio import write_atomic, write_json
 from ..progress import Reporter
-from .shapes import normalize_to_unit_sphere
+from .families import EDGE, blob, boolean, cylinder, finish, moved
 
-EDGE = 0.03  # longest edge of the rendered CAD meshes, unit-sphere frame
-
-
-def _boolean(op: str, meshes: list[trimesh.Trimesh]) -> trimesh.Trimesh:
-    fn = {"union": trimesh.boolean.union, "difference": trimesh.boolean.difference,
-          "intersection": trimesh.boolean.intersection}[op]
-    return fn(meshes, engine="manifold")
-
-
-def _moved(mesh: trimesh.Trimesh, offset=(0, 0, 0), axis=None, angle=0.0) -> trimesh.Trimesh:
-    """A copy rotated by `angle` (radians) about `axis`, then moved by `offset`."""
-    mesh = mesh.copy()
-    if axis is not None:
-        mesh.apply_transform(trimesh.transformations.rotation_matrix(angle, axis))
-    mesh.apply_translation(offset)
-    return mesh
-
-
-def _cylinder(radius: float, height: float, axis=(0, 0, 1), sections: int = 96, offset=(0, 0, 0)):
-    """A cylinder along `axis` ('x', 'y' or 'z' as a unit vector), centred at `offset`."""
-    cyl = trimesh.creation.cylinder(radius, height, sections=sections)
-    axis = np.asarray(axis, float)
-    if not np.allclose(axis, (0, 0, 1)):
-        cyl.apply_transform(trimesh.geometry.align_vectors((0, 0, 1), axis))
-    return _moved(cyl, offset)
+__all__ = ["EDGE", "SHAPES", "generate_validation_set", "validation_shape"]
 
 
 def bracket() -> trimesh.Trimesh:
     """An L-bracket with a bolt hole through its foot: flat faces, a concave corner, genus 1."""
     foot = trimesh.creation.box((1.6, 0.3, 1.0))
-    wall = _moved(trimesh.creation.box((0.3, 1.2, 1.0)), (-0.65, 0.45, 0))
-    return _boolean("difference", [_boolean("union", [foot, wall]), _cylinder(0.18, 1.0, (0, 1, 0), offset=(0.35, 0, 0))])
+    wall = moved(trimesh.creation.box((0.3, 1.2, 1.0)), (-0.65, 0.45, 0))
+    return boolean("difference", [boolean("union", [foot, wall]), cylinder(0.18, 1.0, (0, 1, 0), offset=(0.35, 0, 0))])
 
 
 def nut() -> trimesh.Trimesh:
     """A hexagonal nut: six flat sides, sharp rims, a round hole (genus 1)."""
     prism = trimesh.creation.cylinder(1.0, 0.7, sections=6)
-    return _boolean("difference", [prism, _cylinder(0.42, 1.0)])
+    return boolean("difference", [prism, cylinder(0.42, 1.0)])
 
 
 def chamfered_cube() -> trimesh.Trimesh:
     """A cube with its twelve edges chamfered (the cube cut by three boxes turned 45 degrees)."""
     parts = [trimesh.creation.box((1.0, 1.0, 1.0))]
     for axis in ((1, 0, 0), (0, 1, 0), (0, 0, 1)):
-        parts.append(_moved(trimesh.creation.box((1.25, 1.25, 1.25)), axis=axis, angle=np.pi / 4))
-    return _boolean("intersection", parts)
+        parts.append(moved(trimesh.creation.box((1.25, 1.25, 1.25)), axis=axis, angle=np.pi / 4))
+    return boolean("intersection", parts)
 
 
 def stepped_shaft() -> trimesh.Trimesh:
     """A turned part: a wide disc on a narrower shaft, a concave step between them."""
-    return _boolean("union", [_cylinder(0.8, 0.4, offset=(0, 0, -0.3)), _cylinder(0.4, 1.4, offset=(0, 0, 0.2))])
+    return boolean("union", [cylinder(0.8, 0.4, offset=(0, 0, -0.3)), cylinder(0.4, 1.4, offset=(0, 0, 0.2))])
 
 
 def mug() -> trimesh.Trimesh:
     """A solid cylinder with a thin ring handle on its side (genus 1)."""
-    body = _cylinder(0.55, 1.3, (0, 1, 0))
-    handle = _moved(trimesh.creation.torus(0.38, 0.09, major_sections=96, minor_sections=24), (0.6, 0, 0),
+    body = cylinder(0.55, 1.3, (0, 1, 0))
+    handle = moved(trimesh.creation.torus(0.38, 0.09, major_sections=96, minor_sections=24), (0.6, 0, 0),
                     axis=(1, 0, 0), angle=np.pi / 2)
-    return _boolean("union", [body, handle])
+    return boolean("union", [body, handle])
 
 
 def key() -> trimesh.Trimesh:
     """A key: a ring bow and a long thin blade with teeth."""
-    bow = _moved(trimesh.creation.torus(0.35, 0.1, major_sections=96, minor_sections=24), (-0.75, 0, 0))
-    blade = _moved(trimesh.creation.box((1.3, 0.16, 0.12)), (0.2, 0, 0))
-    teeth = [_moved(trimesh.creation.box((0.1, 0.18, 0.12)), (0.3 + 0.2 * k, -0.14, 0)) for k in range(3)]
-    return _boolean("union", [bow, blade, *teeth])
+    bow = moved(trimesh.creation.torus(0.35, 0.1, major_sections=96, minor_sections=24), (-0.75, 0, 0))
+    blade = moved(trimesh.creation.box((1.3, 0.16, 0.12)), (0.2, 0, 0))
+    teeth = [moved(trimesh.creation.box((0.1, 0.18, 0.12)), (0.3 + 0.2 * k, -0.14, 0)) for k in range(3)]
+    return boolean("union", [bow, blade, *teeth])
 
 
 def finned_body() -> trimesh.Trimesh:
     """A capsule with two thin fins (plates 0.06 thick) standing off it."""
     body = trimesh.creation.capsule(1.0, 0.35, count=[48, 48])
-    fins = [_moved(trimesh.creation.box((0.06, 0.9, 0.9)), (0, 0.4 * s, 0), axis=(0, 0, 1), angle=s * 0.5)
+    fins = [moved(trimesh.creation.box((0.06, 0.9, 0.9)), (0, 0.4 * s, 0), axis=(0, 0, 1), angle=s * 0.5)
             for s in (-1, 1)]
-    return _boolean("union", [body, *fins])
-
-
-def _blob(ellipsoids: list[tuple[tuple, tuple]], blend: float = 0.12, resolution: int = 144) -> trimesh.Trimesh:
-    """A smooth union (polynomial smooth minimum, width `blend`) of ellipsoids ((centre), (radii)),
-    meshed by marching cubes on a grid over [-1.3, 1.3]^3."""
-    from skimage.measure import marching_cubes
-
-    axis = np.linspace(-1.3, 1.3, resolution)
-    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
-    field = None
-    for centre, radii in ellipsoids:
-        q = np.sqrt(sum(((c - o) / r) ** 2 for c, o, r in zip((x, y, z), centre, radii)))
-        d = (q - 1) * min(radii)  # a distance bound, good enough for a smooth union
-        if field is None:
-            field = d
-        else:
-            h = np.clip(0.5 + 0.5 * (d - field) / blend, 0, 1)
-            field = d * (1 - h) + field * h - blend * h * (1 - h)
-    step = axis[1] - axis[0]
-    verts, faces, _, _ = marching_cubes(field, 0.0, spacing=(step,) * 3, allow_degenerate=False)
-    mesh = trimesh.Trimesh(verts - 1.3, faces, process=True)
-    if mesh.volume < 0:
-        mesh.invert()
-    trimesh.smoothing.filter_taubin(mesh, iterations=10)
-    return mesh
+    return boolean("union", [body, *fins])
 
 
 def seated_figure() -> trimesh.Trimesh:
     """A sitting animal: body, head, two ears, a tail."""
-    return _blob([((0, -0.2, 0), (0.55, 0.5, 0.45)), ((0, 0.45, 0.1), (0.33, 0.3, 0.3)),
+    return blob([((0, -0.2, 0), (0.55, 0.5, 0.45)), ((0, 0.45, 0.1), (0.33, 0.3, 0.3)),
                   ((-0.18, 0.75, 0.05), (0.09, 0.16, 0.07)), ((0.18, 0.75, 0.05), (0.09, 0.16, 0.07)),
                   ((0, -0.55, -0.45), (0.12, 0.1, 0.3))])
 
 
 def pebble() -> trimesh.Trimesh:
     """A flattened, slightly lopsided pebble: convex, the hull's easiest case."""
-    return _blob([((0, 0, 0), (0.9, 0.45, 0.65)), ((0.3, 0.05, 0.1), (0.5, 0.4, 0.45))], blend=0.3)
+    return blob([((0, 0, 0), (0.9, 0.45, 0.65)), ((0.3, 0.05, 0.1), (0.5, 0.4, 0.45))], blend=0.3)
 
 
 def duck() -> trimesh.Trimesh:
     """A bath duck: a body, a head on a neck, a flat beak."""
-    return _blob([((0, -0.25, 0), (0.7, 0.4, 0.5)), ((0.3, 0.35, 0), (0.3, 0.3, 0.28)),
+    return blob([((0, -0.25, 0), (0.7, 0.4, 0.5)), ((0.3, 0.35, 0), (0.3, 0.3, 0.28)),
                   ((0.62, 0.3, 0), (0.2, 0.06, 0.12)), ((-0.6, -0.05, 0), (0.2, 0.18, 0.2))])
 
 
@@ -169,16 +120,8 @@ def validation_shape(name: str, seed: int = 0) -> trimesh.Trimesh:
     face lines up with the rig), watertight, outward, edges at most EDGE long."""
     if name not in SHAPES:
         raise LookingGlassError(f"unknown validation shape {name!r} (choose from {', '.join(SHAPES)})")
-    mesh = SHAPES[name][1]()
     draw = np.random.default_rng([seed, list(SHAPES).index(name)]).random(3)  # each shape its own rotation
-    rotation = trimesh.transformations.random_rotation_matrix(draw)
-    mesh.apply_transform(rotation)
-    mesh = normalize_to_unit_sphere(mesh)
-    vertices, faces = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=EDGE)
-    mesh = trimesh.Trimesh(vertices, faces, process=True)
-    if not mesh.is_watertight or mesh.volume <= 0:
-        raise LookingGlassError(f"validation shape {name} is not a closed, outward surface (a CSG failure)")
-    return mesh
+    return finish(SHAPES[name][1](), draw, f"validation shape {name}")
 
 
 def generate_validation_set(out, names: list[str] | None = None, views: int = 10, size=(480, 360),

@@ -38,6 +38,8 @@ class TrainConfig:
     seed: int = setting(0, "Initialization, shuffling and augmentation seed.")
     ior: float = setting(IOR_GLASS, "Index of refraction of the glass.", range=(1, None))
     augment: bool = setting(True, "Augment the training scenes.")
+    photo_noise: float = setting(0.0, "Chance that an augmented scene is degraded like an 8-bit photo (noise, "
+                                      "sRGB quantization).", range=(0, 1))
     max_scenes: int = setting(0, "Use only the first N scenes (0: all).", range=(0, None))
     views_per_step: int = setting(0, "Random views of a scene per step (0: all; views are independent images).",
                                   range=(0, None))
