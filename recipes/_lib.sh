@@ -27,8 +27,16 @@ generate() {
     "${LG[@]}" generate --out "$1" --views "$2" --scenes "$3" --split train --seed 0 --preset cpu --workers 2
 }
 
+# generate_users DIR VIEWS SCENES: training scenes like users' captures (issue 27): 40% procedural shapes and
+# 60% CAD parts, handles, thin parts and blobs (lookingglass/data/families.py), hulls carved from masks 1-6x the
+# 128x96 images (log-uniform; a 480x360 photo is 3.75x). Seed 0, cpu preset, resumable like `generate`.
+generate_users() {
+    "${LG[@]}" generate --out "$1" --views "$2" --scenes "$3" --split train --seed 0 --preset cpu --workers 2 \
+        --family-weights 0.4 0.2 0.1 0.1 0.2 --hull-mask-scale 1 6
+}
+
 # step NAME DIR VIEWS SCENES COMMAND...: unless RUNS/NAME/weights.safetensors exists (the step is done), make
-# sure DIR holds the first SCENES training scenes, then run COMMAND (a train-normals or train-points run with
+# sure DIR holds the first SCENES training scenes (with `generate`, or the function named by GENERATE), then run COMMAND (a train-normals or train-points run with
 # --out RUNS/NAME; run again after an interruption, it resumes from its checkpoint).
 step() {
     local name=$1 dir=$2 views=$3 scenes=$4
@@ -36,7 +44,7 @@ step() {
     if [[ -f $RUNS/$name/weights.safetensors ]]; then
         echo "== $name: done ($RUNS/$name/weights.safetensors)"
     else
-        generate "$dir" "$views" "$scenes"
+        "${GENERATE:-generate}" "$dir" "$views" "$scenes"
         echo "== $name: $*"
         "$@"
     fi

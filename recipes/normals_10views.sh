@@ -28,4 +28,12 @@ step normals10ft "$D10" 10 614 \
     --init "$RUNS/normals10/weights.safetensors" --epochs 6 --lr 2.5e-4 --lr-halve-epochs 3 --max-scenes 614 \
     --out "$RUNS/normals10ft"
 
-install_weights normals10ft normals_10views
+# 3. 2 epochs on 1000 scenes like users' captures (issue 27: CAD parts, handles, thin parts and blobs beside the
+#    procedural shapes; hulls from masks 1-6x the image size), from the 8-epoch net, half the items degraded like
+#    8-bit photos; two DDP processes (~17 min of data, ~60 min of training).
+GENERATE=generate_users step normals10users "$DATA/users10" 10 1000 \
+    "${DDP[@]}" train-normals --data "$DATA/users10" --views 10 --preset cpu --variant wr+cv --seed 0 \
+    --init "$RUNS/normals10ft/weights.safetensors" --epochs 2 --lr 2e-4 --lr-halve-epochs 1 --photo-noise 0.5 \
+    --max-scenes 1000 --out "$RUNS/normals10users"
+
+install_weights normals10users normals_10views
