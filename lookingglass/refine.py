@@ -55,6 +55,9 @@ from .physics.camera import Cameras
 from .render.raycast import RayCaster, object_masks
 
 
+REFERENCE_EDGE = 0.015  # the edge length the Laplacian weights are given for
+
+
 @dataclass
 class RefineConfig:
     """Settings of `refine_surface` (the `refine` stage). Lengths are in the hull-normalized frame
@@ -72,8 +75,10 @@ class RefineConfig:
     band_px: float = setting(12.0, "Rim vertices farther than this from their mask's boundary are not pulled to it.",
                              range=(0, None))
     silhouette_weight: float = setting(1.0, "Weight of the rim and outside constraints.", range=(0, None))
-    smooth_weight: float = setting(1.0, "Weight of the Laplacian of the displacement.", range=(0, None))
-    fair_weight: float = setting(4.0, "Weight of the Laplacian of the positions (fairing; shrinks).", range=(0, None))
+    smooth_weight: float = setting(1.0, "Weight of the Laplacian of the displacement (at edge 0.015).",
+                                   range=(0, None))
+    fair_weight: float = setting(4.0, "Weight of the Laplacian of the positions (fairing; shrinks; at edge 0.015).",
+                                 range=(0, None))
     anchor_weight: float = setting(0.05, "Weight of the displacement from the start (keeps each pull local).",
                                    range=(0, None))
     damping: float = setting(0.05, "Weight of the step length (proximal term).", range=(1e-6, None))
@@ -371,7 +376,12 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     lap_t = lap.T.tocsr()
     ltl_diag = np.asarray(lap.multiply(lap).sum(axis=0)).ravel()  # diag of L^T L
     before = _terms(x0, faces, fields, cams, lap, weights, config)
-    c_smooth = config.smooth_weight + config.fair_weight
+    # The Laplacian terms sum |L x|^2 ~ edge^4 |curvature|^2 over ~1/edge^2 vertices, the rim
+    # constraints ~1/edge per unit of contour: weights scaled by (REFERENCE_EDGE / edge)^3 act the
+    # same at any edge length (the settings are the weights at the default edge length).
+    scale = (REFERENCE_EDGE / config.edge_length) ** 3
+    w_smooth, w_fair = config.smooth_weight * scale, config.fair_weight * scale
+    c_smooth = w_smooth + w_fair
     c_diag = config.damping + config.anchor_weight
     x = x0.copy()
     history = []
@@ -383,7 +393,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         def apply(d: np.ndarray, M=cons.M) -> np.ndarray:
             return np.einsum("nij,nj->ni", M, d) + c_smooth * (lap_t @ (lap @ d)) + c_diag * d
 
-        rhs = cons.b - lap_t @ (lap @ (config.smooth_weight * (x - x0) + config.fair_weight * x)) \
+        rhs = cons.b - lap_t @ (lap @ (w_smooth * (x - x0) + w_fair * x)) \
             - config.anchor_weight * (x - x0)
         diag = np.einsum("nii->ni", cons.M) + c_smooth * ltl_diag[:, None] + c_diag
         x = _unfolded(x0, x, x + _pcg(apply, rhs, diag, config.cg_iterations), faces)
