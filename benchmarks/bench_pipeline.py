@@ -55,6 +55,8 @@ def main() -> int:
             reports.append(json.loads((out / "report.json").read_text()))
         hull_scores = shape_metrics(load_mesh(tmp / "out0" / "visual_hull.ply"), shape)
         mesh_scores = shape_metrics(load_mesh(tmp / "out0" / "mesh.ply"), shape)
+        surface = tmp / "out0" / "surface.ply"  # written when the refine stage ran
+        surface_scores = shape_metrics(load_mesh(surface), shape) if surface.exists() else None
     med = statistics.median
     stages = [s["name"] for s in reports[0]["stages"]]
     per_stage = {name: med(next(s["seconds"] for s in rep["stages"] if s["name"] == name) for rep in reports)
@@ -85,7 +87,9 @@ def main() -> int:
               "", f"Peak memory: **{peak:.0f} MB** ({peak / TARGET_MB:.2f} of the {TARGET_MB:.0f} MB target)"
               + (f"; GPU memory allocated by torch at most {gpu_peak:.0f} MB." if gpu else "."), "",
               f"This scene's scores (CD x1e4 / CDN-mean deg): visual hull {hull_scores['cd']:.2f} / "
-              f"{hull_scores['cdn_mean']:.2f}, mesh.ply {mesh_scores['cd']:.2f} / {mesh_scores['cdn_mean']:.2f} "
+              f"{hull_scores['cdn_mean']:.2f}, "
+              + (f"surface.ply {surface_scores['cd']:.2f} / {surface_scores['cdn_mean']:.2f}, " if surface_scores else "")
+              + f"mesh.ply {mesh_scores['cd']:.2f} / {mesh_scores['cdn_mean']:.2f} "
               "(one scene; the test-split tables are in docs/results.md)."]
     section = ROOT / "docs" / ("benchmarks_pipeline_cuda.md" if gpu else "benchmarks_pipeline.md")
     section.write_text("\n".join(lines) + "\n")

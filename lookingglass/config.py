@@ -14,9 +14,10 @@ from .errors import ConfigError, LookingGlassError
 from .hull import HullConfig
 from .normals.stage import NormalStageConfig
 from .points.stage import SurfaceConfig
+from .refine import RefineConfig
 
 
-STAGES = ("visual_hull", "normals", "surface")
+STAGES = ("visual_hull", "normals", "surface", "refine")
 
 
 @dataclass
@@ -28,7 +29,8 @@ class PipelineConfig:
     hull: HullConfig = field(default_factory=HullConfig)
     normals: NormalStageConfig = field(default_factory=NormalStageConfig)
     surface: SurfaceConfig = field(default_factory=SurfaceConfig)
-    stop_after: str = setting("surface", f"Last stage to run: {', '.join(STAGES)}.")
+    refine: RefineConfig = field(default_factory=RefineConfig)
+    stop_after: str = setting("refine", f"Last stage to run: {', '.join(STAGES)}.")
     device: str = setting("auto", "cpu, cuda, cuda:N or auto (cuda when present).")
     seed: int = setting(0, "Not read by any stage yet (the point sampling takes surface.seed).")
 

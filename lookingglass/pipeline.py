@@ -1,10 +1,14 @@
 """`reconstruct`: run the pipeline's stages on a scene folder and write the results.
 
 Stages: visual_hull -> normals (network + latent optimization; needs weights) -> surface (hull
-points with the mapped normals, moved and refined by PNet when its weights ship, screened Poisson). Outputs (capture frame, written atomically):
+points with the mapped normals, moved and refined by PNet when its weights ship, screened Poisson)
+-> refine (the surface's vertices moved until its silhouettes match the masks, smoothed; the
+better of the surface and the refined mesh is kept). Outputs (capture frame, written atomically):
   OUT/visual_hull.ply  the carved and smoothed hull
   OUT/normals/         per-view normal maps and pictures (normals stage)
   OUT/points.ply       oriented points the surface was made from (surface stage)
+  OUT/surface.ply      the surface stage's mesh (refine stage; mesh.ply is then the refined one)
+  OUT/refine.png       a few views: the photo, the mask's outline over the kept mesh's silhouette
   OUT/mesh.ply         the surface of the last stage that ran (the hull when only it ran)
   OUT/report.json      stages run, per-stage seconds and peak memory, sizes, versions, config
 """
@@ -30,6 +34,8 @@ from .hull import VisualHull, carve_visual_hull
 from .normals.stage import NormalStageResult, run_normal_stage, write_normal_views
 from .points.stage import surface_from_normals
 from .progress import Reporter, peak_memory_mb
+from .refine import refine_surface
+from .viz import silhouette_sheet
 from .weights import NormalWeights, load_normal_net, load_point_net, shipped_weights
 
 
@@ -131,6 +137,19 @@ def _surface(hull: VisualHull, normals: NormalStageResult, config: PipelineConfi
     return mesh
 
 
+def _refine(capture, hull: VisualHull, surface: trimesh.Trimesh, config: PipelineConfig, out_dir: Path,
+            reporter: Reporter) -> trimesh.Trimesh:
+    """The refine stage: writes OUT/surface.ply (its input) and OUT/refine.png; returns the kept mesh."""
+    with reporter.stage("refine", "refine (silhouettes + smoothness)") as rec:
+        write_mesh(out_dir / "surface.ply", surface)
+        result = refine_surface(surface, hull, capture.masks, capture.cameras, config.refine)
+        views = sorted(set(np.linspace(0, capture.num_views - 1, min(4, capture.num_views)).round().astype(int)))
+        silhouette_sheet(out_dir / "refine.png", capture.images, capture.masks, result.casts, views)
+        rec.update(result.report, view_coverage=[round(float(c), 4) for c in hull.view_coverage],
+                   mesh=mesh_summary(result.mesh))
+    return result.mesh
+
+
 def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = None, force: bool = False,
                 reporter: Reporter | None = None) -> dict:
     """Reconstruct the object in the scene folder `scene_dir`; returns the report dict."""
@@ -171,6 +190,9 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
         if normals is not None and "surface" in wanted:
             best = _surface(hull, normals, config, trained_views, device, out_dir, reporter)
             best_stage = "surface"
+            if "refine" in wanted:
+                best = _refine(capture, hull, best, config, out_dir, reporter)
+                best_stage = "refine"
         write_mesh(out_dir / "mesh.ply", best)
     messages = [str(w.message) for w in caught]
     for message in messages:

@@ -84,7 +84,9 @@ def evaluate_validation_set(root, out, config: PipelineConfig | None = None, nam
     """Reconstruct and score every scene of ROOT (data/validation.py's layout: ROOT/index.json,
     ROOT/<name>/scene/, ROOT/<name>/ground_truth.ply); returns and writes OUT/validation.json:
     {"scenes": [{"name", "family", "hull": metrics, "mesh": metrics, "mesh_from", normal errors}],
-    "families": {family: means}}."""
+    "families": {family: means}}; when the refine stage ran, a scene's record also holds "surface"
+    (its input, OUT/<name>/surface.ply, scored) and "refine" (which mesh it kept, the kept mesh's
+    worst silhouette IoU, seconds)."""
     root, out = Path(root), Path(out)
     reporter = reporter or Reporter(quiet=True)
     try:
@@ -106,6 +108,13 @@ def evaluate_validation_set(root, out, config: PipelineConfig | None = None, nam
         record = {"name": name, "family": index["shapes"].get(name, "?"), "mesh_from": report["mesh_from"],
                   "hull": shape_metrics(hull, gt), "mesh": shape_metrics(load_mesh(out / name / "mesh.ply"), gt),
                   "seconds": report["total_seconds"]}
+        if (out / name / "surface.ply").exists():  # the refine stage ran: its input scored too
+            record["surface"] = shape_metrics(load_mesh(out / name / "surface.ply"), gt)
+        refine = next((s for s in report["stages"] if s["name"] == "refine"), None)
+        if refine is not None:
+            chosen = "silhouette_iou_after" if refine["kept"] == "refined" else "silhouette_iou_before"
+            record["refine"] = {"kept": refine["kept"], "iou_min": min(refine[chosen]),
+                                "iou_min_surface": min(refine["silhouette_iou_before"]), "seconds": refine["seconds"]}
         with torch.inference_mode():
             record.update(normal_errors(out / name, load_capture(scene), gt, hull))
         records.append(record)
@@ -123,13 +132,17 @@ def family_means(records: list[dict]) -> dict:
     groups["all"] = records
     means = {}
     for family, rs in groups.items():
-        row = {f"{k}_{m}": float(np.mean([r[k][m] for r in rs])) for k in ("hull", "mesh") for m in SHAPE_METRICS}
+        kinds = ("hull", "surface", "mesh") if all("surface" in r for r in rs) else ("hull", "mesh")
+        row = {f"{k}_{m}": float(np.mean([r[k][m] for r in rs])) for k in kinds for m in SHAPE_METRICS}
         for key in ("n1_median_hull", "n1_median_pred", "n2_median_hull", "n2_median_pred", "render_error_hull",
                     "render_error_pred"):
             values = [r[key] for r in rs if r.get(key) is not None]
             if values:
                 row[key] = float(np.mean(values))
         row["mesh_better_cd"] = sum(r["mesh"]["cd"] < r["hull"]["cd"] for r in rs) / len(rs)
+        if all("refine" in r for r in rs):
+            row["refine_iou_min"] = float(min(r["refine"]["iou_min"] for r in rs))
+            row["refine_kept"] = sum(r["refine"]["kept"] == "refined" for r in rs) / len(rs)
         row["scenes"] = len(rs)
         means[family] = row
     return means
@@ -151,4 +164,16 @@ def markdown_table(result: dict) -> str:
     for name, family, *v in rows:
         lines.append(f"| {name} | {family} | {pair(v[0], v[1])} | {pair(v[2], v[3])} | {pair(v[4], v[5])} | "
                      f"{pair(v[6], v[7]) if v[6] is not None else ''} | {pair(v[8], v[9]) if v[8] is not None else ''} |")
+    if all("surface" in r for r in result["scenes"]) and result["scenes"]:
+        lines += ["", "| scene | CD hull / surface / refined | CDN-mean hull / surface / refined | worst IoU surface / "
+                  "kept | kept |", "|---|---|---|---|---|"]
+        for r in result["scenes"]:
+            ref = r.get("refine", {})
+            lines.append(f"| {r['name']} | {r['hull']['cd']:.2f} / {r['surface']['cd']:.2f} / {r['mesh']['cd']:.2f} | "
+                         f"{r['hull']['cdn_mean']:.2f} / {r['surface']['cdn_mean']:.2f} / {r['mesh']['cdn_mean']:.2f} | "
+                         f"{ref.get('iou_min_surface', float('nan')):.4f} / {ref.get('iou_min', float('nan')):.4f} | "
+                         f"{ref.get('kept', '')} |")
+        m = result["families"]["all"]
+        lines.append(f"| **all** | {m['hull_cd']:.2f} / {m['surface_cd']:.2f} / {m['mesh_cd']:.2f} | "
+                     f"{m['hull_cdn_mean']:.2f} / {m['surface_cdn_mean']:.2f} / {m['mesh_cdn_mean']:.2f} | | |")
     return "\n".join(lines)

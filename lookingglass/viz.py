@@ -41,3 +41,44 @@ def overview(path: str | Path, image: np.ndarray, mask: np.ndarray, cameras: Cam
     gap = np.ones((panels[0].shape[0], 4, 3), np.float32)
     row = np.concatenate([x for p in panels for x in (p, gap)][:-1], axis=1)
     return write_image(path, row, encoding="linear")
+
+
+def silhouette_overlay(mask: np.ndarray, cast: np.ndarray) -> np.ndarray:
+    """(H, W, 3) display colours comparing a mask with a mesh's ray-cast silhouette (both (H, W)
+    bool): the silhouette grey where the mask agrees, blue where the mask is left uncovered,
+    orange where the silhouette spills outside the mask; the mask's outline red on top."""
+    import cv2
+
+    rgb = np.ones(mask.shape + (3,), np.float32)
+    rgb[cast & mask] = (0.62, 0.62, 0.62)
+    rgb[mask & ~cast] = (0.25, 0.45, 1.0)
+    rgb[cast & ~mask] = (1.0, 0.6, 0.1)
+    m = mask.astype(np.uint8)
+    outline = (m - cv2.erode(m, np.ones((3, 3), np.uint8))) > 0
+    rgb[outline] = (0.9, 0.05, 0.05)
+    return rgb
+
+
+def _crop_box(mask: np.ndarray) -> tuple[slice, slice]:
+    ys, xs = np.nonzero(mask)
+    if not len(ys):
+        return slice(None), slice(None)
+    half = int(0.6 * max(ys.max() - ys.min(), xs.max() - xs.min())) + 4
+    cy, cx = (ys.min() + ys.max()) // 2, (xs.min() + xs.max()) // 2
+    return slice(max(cy - half, 0), cy + half), slice(max(cx - half, 0), cx + half)
+
+
+def silhouette_sheet(path: str | Path, images: np.ndarray, masks: np.ndarray, casts: np.ndarray,
+                     views: list[int]) -> Path:
+    """Write a PNG with one row per view in `views`: the photo, then `silhouette_overlay` of its
+    mask and the cast silhouette, cropped around the mask. images (V, H, W, 3) linear; masks,
+    casts (V, H, W) bool. The PNG holds display values."""
+    rows = []
+    for v in views:
+        ys, xs = _crop_box(masks[v])
+        panels = [tonemap(images[v], masks[v])[ys, xs], silhouette_overlay(masks[v], casts[v])[ys, xs]]
+        gap = np.ones((panels[0].shape[0], 4, 3), np.float32)
+        rows.append(np.concatenate([panels[0], gap, panels[1]], axis=1))
+    width = max(r.shape[1] for r in rows)
+    rows = [np.pad(r, ((0, 4), (0, width - r.shape[1]), (0, 0)), constant_values=1.0) for r in rows]
+    return write_image(path, np.concatenate(rows, axis=0), encoding="linear")

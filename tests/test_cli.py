@@ -40,7 +40,7 @@ def test_render_reconstruct_evaluate(rendered_scene):
     assert len(scene["views"]) == 10
     run("reconstruct", root / "scene", "--out", root / "out", "--quiet")
     report = json.loads((root / "out" / "report.json").read_text())
-    expected = ["visual_hull", "normals", "surface"] if shipped_weights(10)[0] else ["visual_hull"]
+    expected = ["visual_hull", "normals", "surface", "refine"] if shipped_weights(10)[0] else ["visual_hull"]
     assert report["stages_run"] == expected and report["num_views"] == 10
     assert report["mesh_from"] == expected[-1]
     assert report["stages"][1]["seconds"] > 0 and report["config"]["hull"]["resolution"] == 128

@@ -32,7 +32,7 @@ def help_line(command: str, flag: str) -> str:
     ("reconstruct", "--hull.resolution,--hull-resolution", ["Range: 16 to 1024", "[default: 128]"]),
     ("reconstruct", "--normals.latent.iterations-n2", ["(paper: 500)", "[default: 10]"]),
     ("reconstruct", "--surface.point-weight", ["[default: 4.0]"]),
-    ("reconstruct", "--stop-after", ["[default: surface]"]),
+    ("reconstruct", "--stop-after", ["[default: refine]"]),
     ("train-normals", "--net.groups", ["(paper: 16)", "[default: 8]"]),
     ("train-normals", "--epochs", ["(paper: 10)", "[default: 8]"]),
     ("train-normals", "--net.num-views,--views", ["[default: 10]"]),

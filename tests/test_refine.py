@@ -1,0 +1,135 @@
+"""The refine stage against independent references: an ellipsoid's silhouettes ray cast by Embree
+(`object_masks`) from a paper rig are the masks; a shrunken, lumpy copy of it must be pulled onto
+them and closer to the ellipsoid, a stray blob in one mask must get that view down-weighted and
+named, and the ellipsoid itself must not be made worse."""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import numpy as np
+import pytest
+import trimesh
+
+from lookingglass.config import STAGES, PipelineConfig
+from lookingglass.data.rigs import paper_rig
+from lookingglass.errors import ConfigError
+from lookingglass.hull import HullConfig, carve_visual_hull
+from lookingglass.metrics import shape_metrics
+from lookingglass.refine import RefineConfig, refine_surface, silhouette_iou, uniform_laplacian
+from lookingglass.render.raycast import object_masks
+
+# a coarser surface than the default (0.015) keeps the tests fast; the method is the same
+CONFIG = RefineConfig(edge_length=0.035)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    gt = trimesh.creation.icosphere(subdivisions=5)
+    gt.vertices = gt.vertices * [0.95, 0.6, 0.75] + [0.05, -0.03, 0.02]
+    cameras = paper_rig(10, rng=3, width=320, height=240)
+    masks = object_masks(gt, cameras, samples_per_axis=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        hull = carve_visual_hull(masks, cameras, HullConfig(resolution=64, num_threads=1))
+    return gt, cameras, masks, hull
+
+
+def lumpy_shrunken(gt: trimesh.Trimesh, scale: float = 0.97, lumps: float = 0.01) -> trimesh.Trimesh:
+    """gt scaled by `scale` about its centre with smooth radial lumps of +-`lumps`: inside every
+    mask (the default: about 2 px inside the masks at 320x240, like a network surface's offsets)."""
+    c = gt.vertices.mean(axis=0)
+    p = gt.vertices - c
+    lumps = scale + lumps * np.sin(7 * p[:, 0]) * np.cos(6 * p[:, 1]) * np.sin(5 * p[:, 2] + 1)
+    return trimesh.Trimesh(c + p * lumps[:, None], gt.faces, process=False)
+
+
+def test_uniform_laplacian_rows_sum_to_zero_and_vanish_on_constants():
+    box = trimesh.creation.box()
+    lap = uniform_laplacian(np.asarray(box.faces), len(box.vertices))
+    np.testing.assert_allclose(lap @ np.ones(len(box.vertices)), 0, atol=1e-12)
+    np.testing.assert_allclose(lap.diagonal(), 1)
+
+
+def test_shrunken_lumpy_mesh_is_pulled_onto_the_masks(scene):
+    gt, cameras, masks, hull = scene
+    start = lumpy_shrunken(gt)
+    iou_start = silhouette_iou(start, cameras, masks)
+    assert iou_start.max() < 0.95  # the test means something: the input misses the masks clearly
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # consistent views: no view is down-weighted
+        result = refine_surface(start, hull, masks, cameras, CONFIG)
+    report = result.report
+    assert report["kept"] == "refined" and report["down_weighted_views"] == []
+    iou = silhouette_iou(result.mesh, cameras, masks)
+    assert iou.min() >= 0.98, iou
+    np.testing.assert_allclose(report["silhouette_iou_after"], iou, atol=1e-4)
+    # closer to the ellipsoid than the input, in Chamfer distance and normals
+    before, after = shape_metrics(start, gt), shape_metrics(result.mesh, gt)
+    assert after["cd"] < 0.8 * before["cd"], (before, after)
+    # A known limit, measured and kept in view here: each pull is local (anchor_weight), so on a
+    # smooth input the moved contour generators leave shallow ridges and the normals get worse
+    # (CDN-mean 1.7 -> about 9 degrees on this ellipsoid); on the networks' lumpy surfaces the
+    # fairing wins (docs/results.md). This bounds the damage.
+    assert after["cdn_mean"] < 12, (before, after)
+    # the optimized terms went down, nothing folded, the mesh is still closed
+    assert report["terms_after"]["silhouette_px2"] < 0.2 * report["terms_before"]["silhouette_px2"]
+    assert report["terms_after"]["smooth"] <= report["terms_before"]["smooth"]
+    assert report["terms_after"]["folds"] == 0 and result.mesh.is_watertight
+
+
+def test_a_view_with_a_stray_blob_is_down_weighted_and_named(scene):
+    gt, cameras, masks, hull = scene
+    bad = masks.copy()
+    yy, xx = np.mgrid[:masks.shape[1], :masks.shape[2]]
+    ys, xs = np.nonzero(masks[4])
+    corner = (20, 20) if xs.mean() > 160 else (20, 300)  # far from the object
+    blob = (yy - corner[0] - 20) ** 2 + (xx - corner[1]) ** 2 < 18 ** 2
+    assert not (blob & masks[4]).any()
+    bad[4] |= blob
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        hull_bad = carve_visual_hull(bad, cameras, HullConfig(resolution=64, num_threads=1))
+        result = refine_surface(lumpy_shrunken(gt), hull_bad, bad, cameras, CONFIG)
+    named = [str(w.message) for w in caught if str(w.message).startswith("refine:")]
+    assert len(named) == 1 and "view(s) 4 " in named[0], named
+    weights = result.view_weights
+    assert weights[4] < 0.7 and np.all(np.delete(weights, 4) == 1), weights
+    assert result.report["down_weighted_views"] == [4]
+    # the other views are still explained, and the blob did not drag the mesh out to it
+    iou = silhouette_iou(result.mesh, cameras, masks)
+    assert np.delete(iou, 4).min() >= 0.98 and iou[4] >= 0.98, iou
+    assert not (object_masks(result.mesh, cameras.select([4]))[0] & blob).any()
+
+
+def test_a_good_input_is_not_made_worse(scene):
+    gt, cameras, masks, hull = scene
+    good = gt.copy()
+    result = refine_surface(good, hull, masks, cameras, CONFIG)
+    iou_in = silhouette_iou(good, cameras, masks)
+    iou_out = silhouette_iou(result.mesh, cameras, masks)
+    assert iou_out.mean() >= iou_in.mean() - 1e-4 and iou_out.min() >= iou_in.min() - CONFIG.keep_tolerance
+    if result.report["kept"] == "input":
+        assert result.mesh is good and result.report["kept_why"]
+    else:
+        assert shape_metrics(result.mesh, gt)["cd"] < 2.5  # the sampling floor of the metric is ~2
+
+
+def test_an_input_made_worse_is_rejected(scene):
+    """The keep check itself: a refinement that cannot help (no iterations, only the remeshing)
+    of a mesh already on the masks must not replace it when it does not improve the measures."""
+    gt, cameras, masks, hull = scene
+    coarse = dataclasses.replace(CONFIG, edge_length=0.2, iterations=0)  # a far coarser copy
+    result = refine_surface(gt, hull, masks, cameras, coarse)
+    assert result.report["kept"] == "input" and result.mesh is gt
+    assert "silhouette IoU" in result.report["kept_why"]
+
+
+def test_the_stage_is_configured():
+    assert STAGES[-1] == "refine" and PipelineConfig().stop_after == "refine"
+    assert isinstance(PipelineConfig().refine, RefineConfig)
+    with pytest.raises(ConfigError, match="edge_length"):
+        RefineConfig(edge_length=0)
+    with pytest.raises(ConfigError, match="view_coverage_zero"):
+        RefineConfig(view_coverage_zero=0.99, view_coverage_full=0.9)
