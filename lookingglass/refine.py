@@ -34,10 +34,8 @@ mask of something else, a cut-off object) disagrees with the other views; it is 
 The projection, pixel rays and silhouette fields are the shared ones (`physics.camera`, `hull`);
 the silhouettes for the IoU and the picture are ray cast by `render.raycast`.
 
-What was measured (val480, 10 shapes unlike the training set, 10 views at 480x360; CD x1e4 /
-CDN-mean deg, means): hull 10.27 / 12.20, surface 6.17 / 12.54, refined 6.25 / 11.09, worst
-view's IoU 0.983 (surface 0.928); about 11 s a scene on one core. Why the first attempt (Adam
-on the vertices) lost CD (chamfered_cube 5.97 -> 9.0): not the remeshing (6.01) nor the
+Current figures on the validation set: docs/results.md. Why a first attempt (Adam on the
+vertices) lost CD (chamfered_cube 5.97 -> 9.0): not the remeshing (6.01) nor the
 Laplacians (6.04 with only them), but the contour term under Adam: every contour-generator
 vertex moved at the learning rate whatever its residual, the contour set changed every step, and
 the mesh grew spikes (outside term 2e-4 -> 0.1 px^2). The linear solves fixed that; what is left:
@@ -46,10 +44,10 @@ the mesh grew spikes (outside term 2e-4 -> 0.1 px^2). The linear solves fixed th
 - locality is a trade-off: with anchor_weight 0 and a stiff displacement Laplacian
   (smooth_weight 200, fair_weight 20) a shrunken ellipsoid comes out right (CD 23.1 -> 2.9, CDN
   2.9 -> 3.6) but the bracket's CD goes 13.3 -> 17.7; with the local default the ellipsoid gets
-  shallow ridges (CDN 1.7 -> 9) while the networks' lumpy surfaces get smoother (val above).
+  shallow ridges (CDN 1.7 -> 9) while the networks' lumpy surfaces get smoother.
 The normal term of the issue (first-hit normals against the network's N1 where its rendering
 error beats the hull's) is not implemented: on this set the predicted N1 is worse than the hull's
-(median 7.8 vs 6.9 deg), so it would have little to trust.
+(median 7.0 vs 6.9 deg), so it would have little to trust.
 """
 
 from __future__ import annotations
