@@ -197,6 +197,18 @@ def silhouette_fields(masks: np.ndarray) -> np.ndarray:
     return out
 
 
+def sample_silhouette_fields(fields, xy):
+    """Bilinear samples (V, N) of `silhouette_fields` output (a torch tensor (V, H + 2P, W + 2P)) at
+    pixel coordinates xy (V, N, 2) of the unpadded image (x right, y down, pixel centres at +0.5);
+    differentiable in xy. Beyond the padding the border replicates: outside."""
+    V, Hp, Wp = fields.shape
+    gx = (xy[..., 0] + _PAD) / Wp * 2 - 1  # align_corners=False: pixel k's centre is at k + 0.5
+    gy = (xy[..., 1] + _PAD) / Hp * 2 - 1
+    grid = torch.stack([gx, gy], dim=-1).unsqueeze(1)  # (V, 1, N, 2)
+    return torch.nn.functional.grid_sample(fields.unsqueeze(1), grid, mode="bilinear", padding_mode="border",
+                                           align_corners=False)[:, 0, 0]
+
+
 # ---------------------------------------------------------------------------------------------
 # Carving
 # ---------------------------------------------------------------------------------------------

@@ -60,12 +60,11 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 import torch
-import torch.nn.functional as F
 import trimesh
 
 from .configio import check_ranges, setting
 from .errors import ConfigError
-from .hull import _PAD, VisualHull, silhouette_fields
+from .hull import VisualHull, sample_silhouette_fields, silhouette_fields
 from .physics.camera import Cameras
 from .render.raycast import RayCaster, object_masks
 
@@ -183,17 +182,6 @@ def fold_overs(start: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> in
 # Silhouette terms
 # ---------------------------------------------------------------------------------------------
 
-def _sample_fields(fields: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
-    """Bilinear samples (V, N) of padded fields (V, H + 2P, W + 2P) at pixel coordinates xy
-    (V, N, 2) of the unpadded image (x right, y down, pixel centres at +0.5)."""
-    V, Hp, Wp = fields.shape
-    gx = (xy[..., 0] + _PAD) / Wp * 2 - 1  # align_corners=False: pixel k's centre is at k + 0.5
-    gy = (xy[..., 1] + _PAD) / Hp * 2 - 1
-    grid = torch.stack([gx, gy], dim=-1).unsqueeze(1)  # (V, 1, N, 2)
-    return F.grid_sample(fields.unsqueeze(1), grid, mode="bilinear", padding_mode="border",
-                         align_corners=False)[:, 0, 0]
-
-
 def field_values(fields: torch.Tensor, cams: Cameras, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """s (V, N): each vertex's signed distance (pixels, + inside) to each view's mask boundary, and
     its gradient g (V, N, 3) with respect to the vertex (pixels per unit; perpendicular to the ray)."""
@@ -201,7 +189,7 @@ def field_values(fields: torch.Tensor, cams: Cameras, vertices: np.ndarray) -> t
     x = torch.as_tensor(vertices, dtype=torch.float32).expand(V, -1, -1).clone().requires_grad_(True)
     with torch.enable_grad():
         xy, depth = cams.project(x)
-        s = _sample_fields(fields, xy)
+        s = sample_silhouette_fields(fields, xy)
         s = torch.where(depth > 0, s, torch.full_like(s, -1e3))
         s.sum().backward()
     return s.detach().numpy().astype(np.float64), x.grad.numpy().astype(np.float64)
@@ -250,10 +238,22 @@ def rim_vertices(vertices: np.ndarray, faces: np.ndarray, cams: Cameras, candida
     return rim
 
 
+def _rim(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, cams: Cameras, usable: np.ndarray,
+         config: RefineConfig) -> np.ndarray:
+    """(V, N) bool: the rim vertices the silhouette term pulls: usable (V, N) contour-generator
+    vertices within `band_px` of their mask's boundary and on their silhouette's outer boundary."""
+    contour = contour_vertices(vertices, faces, cams.origin.double().numpy())
+    return rim_vertices(vertices, faces, cams, contour & (np.abs(s) < config.band_px) & usable)
+
+
+def cast_iou(casts: np.ndarray, masks: np.ndarray) -> np.ndarray:
+    """(V,) intersection over union of ray-cast silhouettes (`object_masks`) and the masks."""
+    return (casts & masks).sum(axis=(1, 2)) / np.maximum((casts | masks).sum(axis=(1, 2)), 1)
+
+
 def silhouette_iou(mesh: trimesh.Trimesh, cameras: Cameras, masks: np.ndarray) -> np.ndarray:
     """(V,) intersection over union of the mesh's ray-cast silhouettes and the masks."""
-    cast = object_masks(mesh, cameras)
-    return (cast & masks).sum(axis=(1, 2)) / np.maximum((cast | masks).sum(axis=(1, 2)), 1)
+    return cast_iou(object_masks(mesh, cameras), masks)
 
 
 def view_weights(coverage: np.ndarray, config: RefineConfig) -> np.ndarray:
@@ -306,9 +306,7 @@ def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.n
     and gradients g (V, N, 3)."""
     gnorm = np.linalg.norm(g, axis=-1)
     usable = (gnorm > 1e-6) & (weights[:, None] > 0)
-    contour = contour_vertices(vertices, faces, cams.origin.double().numpy())
-    candidates = contour & (np.abs(s) < config.band_px) & usable
-    rim = rim_vertices(vertices, faces, cams, candidates)
+    rim = _rim(vertices, faces, s, cams, usable, config)
     outside = (s < 0) & ~rim & usable
     active = rim | outside
     # residual in pixels: rim -> s = 0, outside -> s = +0.25 (a quarter pixel inside)
@@ -346,9 +344,7 @@ def _terms(vertices: np.ndarray, faces: np.ndarray, fields: torch.Tensor, cams: 
     views and the vertices of relu(-s)^2, px^2), silhouette (mean s^2 over the rim vertices, px^2,
     within the band), smooth (mean |L x|^2 / edge^2)."""
     s, g = field_values(fields, cams, vertices)
-    usable = weights[:, None] > 0
-    contour = contour_vertices(vertices, faces, cams.origin.double().numpy())
-    rim = rim_vertices(vertices, faces, cams, contour & (np.abs(s) < config.band_px) & usable)
+    rim = _rim(vertices, faces, s, cams, weights[:, None] > 0, config)
     wv = np.broadcast_to(weights[:, None], s.shape)
     outside = float((wv * np.maximum(-s, 0) ** 2).sum() / max(wv.sum(), 1e-12))
     sil = float((wv[rim] * s[rim] ** 2).sum() / max(wv[rim].sum(), 1e-12))
@@ -419,8 +415,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     folds = fold_overs(x0, x, faces)
     refined = trimesh.Trimesh(hull.denormalize_points(x), faces, process=False)
     cast_in, cast_out = object_masks(mesh, cameras), object_masks(refined, cameras)
-    iou = lambda cast: (cast & masks).sum(axis=(1, 2)) / np.maximum((cast | masks).sum(axis=(1, 2)), 1)  # noqa: E731
-    iou_in, iou_out = iou(cast_in), iou(cast_out)
+    iou_in, iou_out = cast_iou(cast_in, masks), cast_iou(cast_out, masks)
     counted = weights > 0 if (weights > 0).any() else np.ones(V, bool)
     mean_w = lambda a: float((a * weights).sum() / max(weights.sum(), 1e-12))  # noqa: E731
     tol = config.keep_tolerance
