@@ -11,6 +11,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch.nn.functional as F
+from torch import Tensor
 
 from ..errors import LookingGlassError
 from ..fileio import write_atomic
@@ -177,3 +179,27 @@ def write_mask(path: str | os.PathLike, mask: np.ndarray) -> Path:
 def _cv_write(path: Path, pixels: np.ndarray) -> None:
     if not cv2.imwrite(str(path), pixels):
         raise LookingGlassError("cannot write image", path)
+
+
+def exposure_factor(images: Tensor, target_mean: float = 0.5) -> float:
+    """Factor that brings the mean of `images` (any shape, linear) to `target_mean`."""
+    mean = float(images.double().mean())
+    if not np.isfinite(mean) or mean <= 0:
+        raise ValueError("images are black (mean radiance 0): nothing to normalize")
+    return target_mean / mean
+
+
+def resize_images(images: Tensor, width: int, height: int) -> Tensor:
+    """(V, H, W, C) float -> (V, height, width, C), area-averaged when shrinking."""
+    if images.shape[1:3] == (height, width):
+        return images
+    x = images.permute(0, 3, 1, 2)
+    shrink = height <= images.shape[1] and width <= images.shape[2]
+    x = F.interpolate(x, size=(height, width), mode="area") if shrink else \
+        F.interpolate(x, size=(height, width), mode="bilinear", align_corners=False)
+    return x.permute(0, 2, 3, 1).contiguous()
+
+
+def resize_masks(masks: Tensor, width: int, height: int) -> Tensor:
+    """(V, H, W) bool -> (V, height, width) bool by area coverage >= 1/2."""
+    return resize_images(masks.unsqueeze(-1).float(), width, height)[..., 0] >= 0.5

@@ -175,7 +175,7 @@ class TransparentSceneDataset(Dataset):
         return target, float(rng.uniform(0.0, PHOTO_NOISE_SIGMA)) if noisy else 0.0
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
-        from ..normals.inputs import exposure_factor
+        from ..capture.images import exposure_factor
 
         if not -len(self) <= index < len(self):
             raise IndexError(f"scene {index} out of range ({len(self)} scenes)")

@@ -18,12 +18,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 
-import numpy as np
 import torch
-import torch.nn.functional as F
 import trimesh
 from torch import Tensor
 
+from ..capture.images import exposure_factor, resize_images, resize_masks
 from ..errors import LookingGlassError
 from ..physics.camera import Cameras
 from ..physics.environment import EnvironmentMap
@@ -31,30 +30,6 @@ from ..physics.optics import IOR_GLASS
 from ..render.tracer import trace_two_bounce
 from .model import NormalNetConfig, build_cost_volume, network_inputs
 from .render_layer import error_map, render_layer
-
-
-def exposure_factor(images: Tensor, target_mean: float = 0.5) -> float:
-    """Factor that brings the mean of `images` (any shape, linear) to `target_mean`."""
-    mean = float(images.double().mean())
-    if not np.isfinite(mean) or mean <= 0:
-        raise ValueError("images are black (mean radiance 0): nothing to normalize")
-    return target_mean / mean
-
-
-def resize_images(images: Tensor, width: int, height: int) -> Tensor:
-    """(V, H, W, C) float -> (V, height, width, C), area-averaged when shrinking."""
-    if images.shape[1:3] == (height, width):
-        return images
-    x = images.permute(0, 3, 1, 2)
-    shrink = height <= images.shape[1] and width <= images.shape[2]
-    x = F.interpolate(x, size=(height, width), mode="area") if shrink else \
-        F.interpolate(x, size=(height, width), mode="bilinear", align_corners=False)
-    return x.permute(0, 2, 3, 1).contiguous()
-
-
-def resize_masks(masks: Tensor, width: int, height: int) -> Tensor:
-    """(V, H, W) bool -> (V, height, width) bool by area coverage >= 1/2."""
-    return resize_images(masks.unsqueeze(-1).float(), width, height)[..., 0] >= 0.5
 
 
 @dataclass
