@@ -8,7 +8,7 @@ better of the surface and the refined mesh is kept). Outputs (capture frame, wri
   OUT/normals/         per-view normal maps and pictures (normals stage)
   OUT/points.ply       oriented points the surface was made from (surface stage)
   OUT/surface.ply      the surface stage's mesh (refine stage; mesh.ply is then the refined one)
-  OUT/refine.png       a few views: the photo, the mask's outline over the kept mesh's silhouette
+  OUT/refine.png       a few views: the photo, the mask's outline over the kept mesh's silhouette, its re-rendering
   OUT/mesh.ply         the surface of the last stage that ran (the hull when only it ran)
   OUT/report.json      stages run, per-stage seconds and peak memory, sizes, versions, config
 """
@@ -142,9 +142,10 @@ def _refine(capture, hull: VisualHull, surface: trimesh.Trimesh, config: Pipelin
     """The refine stage: writes OUT/surface.ply (its input) and OUT/refine.png; returns the kept mesh."""
     with reporter.stage("refine", "refine (silhouettes + smoothness)") as rec:
         write_mesh(out_dir / "surface.ply", surface)
-        result = refine_surface(surface, hull, capture.masks, capture.cameras, config.refine)
+        result = refine_surface(surface, hull, capture.masks, capture.cameras, config.refine, capture=capture)
         views = sorted(set(np.linspace(0, capture.num_views - 1, min(4, capture.num_views)).round().astype(int)))
-        silhouette_sheet(out_dir / "refine.png", capture.images, capture.masks, result.casts, views)
+        silhouette_sheet(out_dir / "refine.png", capture.images, capture.masks, result.casts, views,
+                         result.rerendering)
         rec.update(result.report, view_coverage=[round(float(c), 4) for c in hull.view_coverage],
                    mesh=mesh_summary(result.mesh))
     return result.mesh

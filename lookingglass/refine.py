@@ -55,7 +55,6 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
@@ -65,11 +64,19 @@ import trimesh
 from .configio import check_ranges, setting
 from .errors import ConfigError
 from .hull import VisualHull, sample_silhouette_fields, silhouette_fields
+from .capture.images import exposure_factor, resize_images, resize_masks
+from .normals.render_layer import comparable, render_layer
 from .physics.camera import Cameras
+from .physics.environment import EnvironmentMap
+from .render.compare import RERENDER_WIDTH, Rerendering, rerender
+from .render.differentiable import mesh_two_bounce
 from .render.raycast import RayCaster, object_masks
 
 
 REFERENCE_EDGE = 0.015  # the edge length the Laplacian weights are given for
+# The refined mesh may re-render worse than its input by this share before the input is kept:
+# the same mesh re-rendered with another sampling seed scores within ~0.5%.
+RERENDER_TOLERANCE = 0.01
 
 
 @dataclass
@@ -101,6 +108,15 @@ class RefineConfig:
                                         range=(0, 1))
     view_coverage_zero: float = setting(0.8, "A view whose mask the hull covers at most this much has weight 0 (linear up to full).",
                                         range=(0, 1))
+    rerender_width: int = setting(240, "Width the input and refined meshes are re-rendered at to compare them with the "
+                                       "photos (a keep-check measure; 0: off).", range=(0, 4096))
+    photometric_iterations: int = setting(0, "Descent steps on the two-bounce photometric loss after the silhouette "
+                                             "iterations (0: off; measured not to help yet, docs/results.md).",
+                                          range=(0, 500))
+    photometric_step: float = setting(0.5, "Largest photometric step, in edge lengths (halved while the loss does not fall).",
+                                      range=(0.001, 10))
+    photometric_envmap_height: int = setting(64, "Environment-map height the photometric loss looks up (a blurred map "
+                                                 "widens the basin).", range=(8, 4096))
     keep_tolerance: float = setting(0.002, "The refined mesh is kept unless a measure is worse than the input's by "
                                            "more than this (IoU; relative for the roughness).", range=(0, None))
 
@@ -321,6 +337,73 @@ def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.n
 
 
 # ---------------------------------------------------------------------------------------------
+# Photometric term (off by default: see the module docstring)
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class _PhotoTarget:
+    """The photos the photometric loss compares with, in the normalized frame: cams (V views at
+    the re-rendering size), photos (V, h, w, 3) normalized and clipped, masks (V, h, w), envmap
+    scaled by the photos' exposure factor, ior."""
+
+    cams: Cameras
+    photos: torch.Tensor
+    masks: torch.Tensor
+    envmap: EnvironmentMap
+    ior: float
+
+    @classmethod
+    def of(cls, capture, hull: VisualHull, width: int, envmap_height: int) -> "_PhotoTarget":
+        V, H, W = capture.masks.shape
+        width = min(int(width), W)
+        height = max(1, round(width * H / W))
+        photos = torch.as_tensor(capture.images).float()
+        factor = exposure_factor(photos)
+        cams = hull.cameras_normalized(capture.cameras).with_resolution(width, height).to(device="cpu",
+                                                                                       dtype=torch.float32)
+        return cls(cams, resize_images(photos * factor, width, height).clamp(0, 1),
+                   resize_masks(torch.as_tensor(capture.masks).bool(), width, height),
+                   EnvironmentMap(torch.as_tensor(capture.envmap).float() * factor).resized(envmap_height),
+                   float(capture.ior))
+
+    def loss(self, vertices: np.ndarray, faces: np.ndarray, grad: bool = False) -> tuple[float, np.ndarray | None]:
+        """Mean absolute difference per channel between the photos and the rendering layer's
+        image of the mesh's two-bounce normals, over the mask pixels the two-bounce path explains;
+        with its gradient (N, 3) w.r.t. the vertices when `grad`."""
+        x = torch.as_tensor(vertices, dtype=torch.float32).requires_grad_(grad)
+        with torch.set_grad_enabled(grad):
+            tb = mesh_two_bounce(x, torch.as_tensor(faces, dtype=torch.long), self.cams, ior=self.ior)
+            out = render_layer(self.envmap, tb.normal1, tb.normal2, self.cams, ior=self.ior, view_dirs=tb.view_dirs)
+            m = (tb.valid & self.masks & ~out.tir).unsqueeze(-1).float()
+            loss = ((comparable(out.image) - self.photos).abs() * m).sum() / (3 * m.sum()).clamp(min=1)
+            if not grad:
+                return float(loss), None
+            loss.backward()
+        return float(loss.detach()), x.grad.numpy().astype(np.float64)
+
+
+def _photometric_steps(x: np.ndarray, x0: np.ndarray, faces: np.ndarray, target: _PhotoTarget, precondition,
+                       step: float, iterations: int) -> tuple[np.ndarray, list[float]]:
+    """Descend the photometric loss from `x`: each step is the loss gradient smoothed by
+    `precondition` (the silhouette solve's own system, so the step is smooth and keeps the rims on
+    their masks), scaled so its 99th-percentile vertex moves `step`, then halved until the loss
+    falls (the step length carries over). Returns the vertices and the loss before each step."""
+    losses = []
+    for _ in range(iterations):
+        value, g = target.loss(x, faces, grad=True)
+        losses.append(value)
+        d = -precondition(g)
+        d /= max(float(np.percentile(np.linalg.norm(d, axis=1), 99)), 1e-12)
+        while step > 1e-4:
+            proposed = _unfolded(x0, x, x + step * d, faces)
+            if target.loss(proposed, faces)[0] < value:
+                x = proposed
+                break
+            step /= 2
+    return x, losses
+
+
+# ---------------------------------------------------------------------------------------------
 # Entry point
 # ---------------------------------------------------------------------------------------------
 
@@ -329,13 +412,15 @@ class RefineResult:
     """mesh: the kept mesh, capture frame (the refined one, or the input when that was better);
     refined: the refined mesh whether kept or not; report: figures for report.json;
     view_weights: (V,) the weight each view got; casts: (V, H, W) bool, the kept mesh's ray-cast
-    silhouettes."""
+    silhouettes; rerendering: the kept mesh re-rendered and compared with the photos (None without
+    a capture)."""
 
     mesh: trimesh.Trimesh
     refined: trimesh.Trimesh
     report: dict
     view_weights: np.ndarray
     casts: np.ndarray
+    rerendering: Rerendering | None = None
 
 
 def _terms(vertices: np.ndarray, faces: np.ndarray, fields: torch.Tensor, cams: Cameras, lap: sp.csr_matrix,
@@ -353,11 +438,13 @@ def _terms(vertices: np.ndarray, faces: np.ndarray, fields: torch.Tensor, cams: 
 
 
 def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cameras: Cameras,
-                   config: RefineConfig | None = None, view_coverage: np.ndarray | None = None) -> RefineResult:
+                   config: RefineConfig | None = None, view_coverage: np.ndarray | None = None,
+                   capture=None) -> RefineResult:
     """Refine `mesh` (capture frame, closed) against `masks` (V, H, W) bool seen by `cameras`
     (capture frame, H x W). `hull` gives the normalized frame; `view_coverage` (V,) the share of
     each mask the hull covers (default: `hull.view_coverage` when it has one per view, else every
-    view counts fully). Returns the kept mesh (the better of the refined one and the input) and the
+    view counts fully). capture: the loaded capture (photos, environment map, ior) for the
+    re-rendering check and the photometric term (both skipped without). Returns the kept mesh (the better of the refined one and the input) and the
     report. Warns (warnings.warn) for every down-weighted view."""
     config = config or RefineConfig()
     start_time = time.perf_counter()
@@ -396,18 +483,32 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     c_diag = config.damping + config.anchor_weight
     x = x0.copy()
     history = []
+
+    def system(M: np.ndarray):
+        """The linear system of one solve, given the constraints' blocks M (N, 3, 3): the operator
+        and its diagonal (the preconditioner)."""
+        def apply(d: np.ndarray) -> np.ndarray:
+            return np.einsum("nij,nj->ni", M, d) + c_smooth * (lap_t @ (lap @ d)) + c_diag * d
+        return apply, np.einsum("nii->ni", M) + c_smooth * ltl_diag[:, None] + c_diag
+
     for _ in range(config.iterations):
         s, g = field_values(fields, cams, x)
         cons = _constraints(x, faces, s, g, cams, weights, config)
         history.append({"rim": int(cons.rim.sum()), "outside": int(cons.outside.sum())})
-
-        def apply(d: np.ndarray, M=cons.M) -> np.ndarray:
-            return np.einsum("nij,nj->ni", M, d) + c_smooth * (lap_t @ (lap @ d)) + c_diag * d
-
         rhs = cons.b - lap_t @ (lap @ (w_smooth * (x - x0) + w_fair * x)) \
             - config.anchor_weight * (x - x0)
-        diag = np.einsum("nii->ni", cons.M) + c_smooth * ltl_diag[:, None] + c_diag
+        apply, diag = system(cons.M)
         x = _unfolded(x0, x, x + _pcg(apply, rhs, diag, config.cg_iterations), faces)
+    photo_losses: list[float] = []
+    if config.photometric_iterations and capture is not None:
+        t_photo = time.perf_counter()
+        target = _PhotoTarget.of(capture, hull, config.rerender_width or RERENDER_WIDTH, config.photometric_envmap_height)
+        s, g = field_values(fields, cams, x)
+        apply, diag = system(_constraints(x, faces, s, g, cams, weights, config).M)
+        x, photo_losses = _photometric_steps(x, x0, faces, target, lambda r: _pcg(apply, r, diag, config.cg_iterations),
+                                             config.photometric_step * config.edge_length, config.photometric_iterations)
+        photo_losses.append(target.loss(x, faces)[0])
+        timings["photometric"] = time.perf_counter() - t_photo
     timings["optimize"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -428,6 +529,12 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         worse.append(f"roughness {before['smooth']:.4g} -> {after['smooth']:.4g}")
     if folds > 0:
         worse.append(f"{folds} fold-over(s)")
+    rerendered = {}
+    if capture is not None and config.rerender_width > 0:
+        rerendered = {k: rerender(m, capture, width=config.rerender_width) for k, m in (("input", mesh), ("refined", refined))}
+        rr_in, rr_out = (mean_w(rerendered[k].error) for k in ("input", "refined"))
+        if rr_out > rr_in * (1 + RERENDER_TOLERANCE):
+            worse.append(f"re-rendering error {rr_in:.4f} -> {rr_out:.4f}")
     kept = not worse
     timings["check"] = time.perf_counter() - t
     report = {
@@ -438,10 +545,15 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         "silhouette_iou_after": [round(float(v), 4) for v in iou_out],
         "silhouette_iou_mean": [round(mean_w(iou_in), 4), round(mean_w(iou_out), 4)],
         "view_weights": [round(float(w), 3) for w in weights],
+        **({"rerender_error": [round(mean_w(rerendered[k].error), 4) for k in ("input", "refined")],
+            "rerender_error_views_after": [round(float(e), 4) for e in rerendered["refined"].error]}
+           if rerendered else {}),
+        **({"photometric_loss": [round(v, 4) for v in photo_losses]} if photo_losses else {}),
         "down_weighted_views": [int(v) for v in low],
         "vertices": int(len(x0)), "faces": int(len(faces)), "iterations": config.iterations,
         "constraints_first_last": [history[0], history[-1]] if history else None,
         "timings": {k: round(v, 3) for k, v in timings.items()},
         "seconds": round(time.perf_counter() - start_time, 2),
     }
-    return RefineResult(refined if kept else mesh, refined, report, weights, cast_out if kept else cast_in)
+    return RefineResult(refined if kept else mesh, refined, report, weights, cast_out if kept else cast_in,
+                        rerendered.get("refined" if kept else "input"))

@@ -2,7 +2,9 @@
 
 This is how a change is judged on inputs like users' (data/validation.py makes such a set): every
 scene is reconstructed by `reconstruct` itself, with the given config, and for each one the hull
-and the final mesh are scored against the ground truth (CD, Metro, CDN-mean, CDN-med), and the
+and the final mesh are scored against the ground truth (CD, Metro, CDN-mean, CDN-med) and against
+the photos (the re-rendering error, `render.compare`: each mesh rendered as glass from the
+capture's cameras), and the
 normal stage's maps against the ground truth's two-bounce normals (N1 over the object, N2 where
 the true path has exactly two interfaces) beside the hull's own, with both render errors. A
 network earns its place where its figure is below the hull's.
@@ -26,10 +28,11 @@ from .fileio import sha256_file, write_json
 from .metrics import load_mesh, normal_angle_errors, shape_metrics
 from .pipeline import reconstruct
 from .progress import Reporter
+from .render.compare import rerender
 from .render.tracer import trace_two_bounce
 from .weights import WEIGHTS_DIR
 
-SHAPE_METRICS = ("cd", "metro", "cdn_mean", "cdn_med")
+SHAPE_METRICS = ("cd", "metro", "cdn_mean", "cdn_med", "rerender")
 
 
 def normal_errors(result_dir: Path, capture, gt, hull) -> dict:
@@ -115,8 +118,14 @@ def evaluate_validation_set(root, out, config: PipelineConfig | None = None, nam
             chosen = "silhouette_iou_after" if refine["kept"] == "refined" else "silhouette_iou_before"
             record["refine"] = {"kept": refine["kept"], "iou_min": min(refine[chosen]),
                                 "iou_min_surface": min(refine["silhouette_iou_before"]), "seconds": refine["seconds"]}
+        capture = load_capture(scene)
         with torch.inference_mode():
-            record.update(normal_errors(out / name, load_capture(scene), gt, hull))
+            record.update(normal_errors(out / name, capture, gt, hull))
+        meshes = {"hull": hull, "mesh": load_mesh(out / name / "mesh.ply")}
+        if "surface" in record:
+            meshes["surface"] = load_mesh(out / name / "surface.ply")
+        for kind, mesh in meshes.items():  # how well each explains the photos (render/compare.py)
+            record[kind]["rerender"] = rerender(mesh, capture).mean_error
         records.append(record)
     result = {"config": config_to_dict(config), "scenes": records, "families": family_means(records)}
     write_json(out / "validation.json", result)
@@ -165,15 +174,19 @@ def markdown_table(result: dict) -> str:
         lines.append(f"| {name} | {family} | {pair(v[0], v[1])} | {pair(v[2], v[3])} | {pair(v[4], v[5])} | "
                      f"{pair(v[6], v[7]) if v[6] is not None else ''} | {pair(v[8], v[9]) if v[8] is not None else ''} |")
     if all("surface" in r for r in result["scenes"]) and result["scenes"]:
-        lines += ["", "| scene | CD hull / surface / refined | CDN-mean hull / surface / refined | worst IoU surface / "
-                  "kept | kept |", "|---|---|---|---|---|"]
+        lines += ["", "| scene | CD hull / surface / refined | CDN-mean hull / surface / refined | re-rendering error "
+                  "hull / surface / refined | worst IoU surface / kept | kept |", "|---|---|---|---|---|---|"]
+
+        def three(values: list[float], m: str) -> str:
+            return " / ".join(f"{x:.{3 if m == 'rerender' else 2}f}" for x in values)
+
+        kinds = ("hull", "surface", "mesh")
         for r in result["scenes"]:
             ref = r.get("refine", {})
-            lines.append(f"| {r['name']} | {r['hull']['cd']:.2f} / {r['surface']['cd']:.2f} / {r['mesh']['cd']:.2f} | "
-                         f"{r['hull']['cdn_mean']:.2f} / {r['surface']['cdn_mean']:.2f} / {r['mesh']['cdn_mean']:.2f} | "
-                         f"{ref.get('iou_min_surface', float('nan')):.4f} / {ref.get('iou_min', float('nan')):.4f} | "
-                         f"{ref.get('kept', '')} |")
-        m = result["families"]["all"]
-        lines.append(f"| **all** | {m['hull_cd']:.2f} / {m['surface_cd']:.2f} / {m['mesh_cd']:.2f} | "
-                     f"{m['hull_cdn_mean']:.2f} / {m['surface_cdn_mean']:.2f} / {m['mesh_cdn_mean']:.2f} | | |")
+            cells = " | ".join(three([r[k][m] for k in kinds], m) for m in ("cd", "cdn_mean", "rerender"))
+            lines.append(f"| {r['name']} | {cells} | {ref.get('iou_min_surface', float('nan')):.4f} / "
+                         f"{ref.get('iou_min', float('nan')):.4f} | {ref.get('kept', '')} |")
+        m_all = result["families"]["all"]
+        cells = " | ".join(three([m_all[f"{k}_{m}"] for k in kinds], m) for m in ("cd", "cdn_mean", "rerender"))
+        lines.append(f"| **all** | {cells} | | |")
     return "\n".join(lines)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import trimesh
 
@@ -69,16 +70,36 @@ def _crop_box(mask: np.ndarray) -> tuple[slice, slice]:
 
 
 def silhouette_sheet(path: str | Path, images: np.ndarray, masks: np.ndarray, casts: np.ndarray,
-                     views: list[int]) -> Path:
+                     views: list[int], rerendering=None) -> Path:
     """Write a PNG with one row per view in `views`: the photo, then `silhouette_overlay` of its
-    mask and the cast silhouette, cropped around the mask. images (V, H, W, 3) linear; masks,
-    casts (V, H, W) bool. The PNG holds display values."""
+    mask and the cast silhouette, then (given a `render.compare.Rerendering`) the mesh re-rendered
+    as glass with its re-rendering error written on it, cropped around the mask. images
+    (V, H, W, 3) linear; masks, casts (V, H, W) bool. The PNG holds display values."""
     rows = []
     for v in views:
         ys, xs = _crop_box(masks[v])
         panels = [tonemap(images[v], masks[v])[ys, xs], silhouette_overlay(masks[v], casts[v])[ys, xs]]
+        if rerendering is not None:
+            panels.append(_rerender_panel(rerendering, v, masks.shape[2], masks.shape[1])[ys, xs])
         gap = np.ones((panels[0].shape[0], 4, 3), np.float32)
-        rows.append(np.concatenate([panels[0], gap, panels[1]], axis=1))
+        rows.append(np.concatenate([p for panel in panels for p in (panel, gap)][:-1], axis=1))
     width = max(r.shape[1] for r in rows)
     rows = [np.pad(r, ((0, 4), (0, width - r.shape[1]), (0, 0)), constant_values=1.0) for r in rows]
     return write_image(path, np.concatenate(rows, axis=0), encoding="linear")
+
+
+def _rerender_panel(rerendering, v: int, width: int, height: int) -> np.ndarray:
+    """View v's re-rendering at width x height in display values, exposed like `tonemap` exposes
+    the photo (its mean inside the mask to 0.5), with "error 0.123" written in its corner."""
+    photo, mask = rerendering.photos[v], rerendering.masks[v]
+    ref = photo[mask] if mask.any() else photo
+    panel = linear_to_srgb(rerendering.renders[v] * (0.5 / max(float(ref.mean()), 1e-8)))
+    panel = np.ascontiguousarray(np.round(255 * cv2.resize(panel, (width, height), interpolation=cv2.INTER_LINEAR))
+                                 .clip(0, 255).astype(np.uint8))  # putText draws on 8-bit images only
+    # the label at the mask's top-left, where the crop keeps it
+    ys, xs = np.nonzero(cv2.resize(mask.astype(np.uint8), (width, height), interpolation=cv2.INTER_NEAREST))
+    x0, y0 = (int(xs.min()), int(ys.min())) if len(ys) else (2, 2)
+    scale = max(0.3, height / 900)
+    cv2.putText(panel, f"error {rerendering.error[v]:.3f}", (max(x0 - 10, 2), max(y0 - 4, 12)),
+                cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 50), 1, cv2.LINE_AA)
+    return panel.astype(np.float32) / 255

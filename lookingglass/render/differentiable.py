@@ -1,0 +1,101 @@
+"""Two-bounce normals of a triangle mesh, differentiable with respect to its vertices.
+
+Embree finds which triangle each camera ray meets first, and which one the refracted ray meets
+next (`RayCaster.intersect_raw`, the renderer's own casts); the hit itself is then recomputed in
+torch from the triangle's vertices (Moller-Trumbore: distance and barycentric coordinates), so the
+smooth normals at both hits, interpolated from area-weighted vertex normals, carry gradients to
+every vertex they depend on: through the barycentrics (where on the triangle the ray lands), the
+refraction at the first hit (where the second lands) and the vertex normals themselves. Triangle
+choices are piecewise constant and carry none. What the normals look like under an environment
+map is the rendering layer's (`normals.render_layer`): the same Snell/Fresnel code as the renderer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..physics.camera import Cameras
+from ..physics.optics import IOR_AIR, IOR_GLASS, interface
+from .raycast import RayCaster
+
+
+@dataclass
+class MeshTwoBounce:
+    """normal1, normal2 (V, H, W, 3) camera-frame unit smooth normals at the first and second hit
+    (zero where undefined), differentiable w.r.t. the vertices; valid (V, H, W) bool: the ray enters
+    at the first hit and reaches a second one from inside without total internal reflection at
+    the first; view_dirs (V, H, W, 3) the world directions of the pixel-centre rays."""
+
+    normal1: Tensor
+    normal2: Tensor
+    valid: Tensor
+    view_dirs: Tensor
+
+
+def vertex_normals_t(vertices: Tensor, faces: Tensor) -> Tensor:
+    """(N, 3) unit area-weighted vertex normals of `vertices` (N, 3) and `faces` (F, 3) long."""
+    tri = vertices[faces]
+    fn = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    vn = torch.zeros_like(vertices).index_add(0, faces.reshape(-1), fn.repeat_interleave(3, dim=0))
+    return torch.nn.functional.normalize(vn, dim=-1, eps=1e-12)
+
+
+def _hit(vertices: Tensor, faces: Tensor, normals: Tensor, face: Tensor, origin: Tensor, direction: Tensor):
+    """Ray (origin, direction) (K, 3) against triangle `face` (K,): the hit distance (K,) and
+    the interpolated unit normal (K, 3), both differentiable w.r.t. the vertices (Moller-Trumbore)."""
+    tri = faces[face]
+    a, b, c = vertices[tri[:, 0]], vertices[tri[:, 1]], vertices[tri[:, 2]]
+    e1, e2 = b - a, c - a
+    p = torch.linalg.cross(direction, e2)
+    det = (e1 * p).sum(-1)
+    inv = 1.0 / torch.where(det.abs() > 1e-12, det, torch.full_like(det, 1e-12))
+    s = origin - a
+    u = (s * p).sum(-1) * inv
+    q = torch.linalg.cross(s, e1)
+    v = (direction * q).sum(-1) * inv
+    t = (e2 * q).sum(-1) * inv
+    n = (1 - u - v)[:, None] * normals[tri[:, 0]] + u[:, None] * normals[tri[:, 1]] + v[:, None] * normals[tri[:, 2]]
+    return t, torch.nn.functional.normalize(n, dim=-1, eps=1e-12)
+
+
+def mesh_two_bounce(vertices: Tensor, faces: Tensor, cameras: Cameras, caster: RayCaster | None = None,
+                    ior: float = IOR_GLASS, ext_ior: float = IOR_AIR) -> MeshTwoBounce:
+    """The first- and second-hit normals of the mesh (vertices (N, 3) float, possibly requiring
+    grad; faces (F, 3) long) for the pixel-centre rays of `cameras` (same frame). caster: an
+    Embree scene of the same mesh (built here when None)."""
+    if caster is None:
+        import trimesh
+
+        caster = RayCaster(trimesh.Trimesh(vertices.detach().cpu().numpy(), faces.cpu().numpy(), process=False))
+    V, H, W = cameras.num_views, cameras.height, cameras.width
+    cams = cameras.to(dtype=vertices.dtype, device=vertices.device)
+    origins, dirs = cams.pixel_rays()
+    o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+    normals = vertex_normals_t(vertices, faces)
+
+    _, face1, _, _ = caster.intersect_raw(o.detach().cpu().numpy(), d.detach().cpu().numpy())
+    i1 = torch.from_numpy(np.flatnonzero(face1 >= 0)).to(vertices.device)
+    t1, n1 = _hit(vertices, faces, normals, torch.from_numpy(face1).to(vertices.device)[i1], o[i1], d[i1])
+    p1 = o[i1] + t1[:, None] * d[i1]
+    _, refracted, _, tir1 = interface(d[i1], n1, ext_ior / ior)
+    enters = ((d[i1] * n1).sum(-1) < 0) & ~tir1
+
+    go = torch.nonzero(enters).squeeze(-1)
+    _, face2, _, _ = caster.intersect_raw(p1[go].detach().cpu().numpy(), refracted[go].detach().cpu().numpy(),
+                                          offset=True)
+    j2 = torch.from_numpy(np.flatnonzero(face2 >= 0)).to(vertices.device)
+    k = go[j2]
+    _, n2 = _hit(vertices, faces, normals, torch.from_numpy(face2).to(vertices.device)[j2], p1[k], refracted[k])
+
+    total = V * H * W
+    normal1 = torch.zeros(total, 3, dtype=vertices.dtype, device=vertices.device).index_put((i1,), n1)
+    normal2 = torch.zeros(total, 3, dtype=vertices.dtype, device=vertices.device).index_put((i1[k],), n2)
+    valid = torch.zeros(total, dtype=torch.bool, device=vertices.device)
+    valid[i1[k]] = True
+    shape = (V, H, W, 3)
+    return MeshTwoBounce(cams.world_to_camera(normal1.view(shape)), cams.world_to_camera(normal2.view(shape)),
+                         valid.view(V, H, W), d.view(shape))
