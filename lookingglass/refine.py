@@ -64,18 +64,17 @@ import trimesh
 from .configio import check_ranges, setting
 from .errors import ConfigError
 from .hull import VisualHull, sample_silhouette_fields, silhouette_fields
-from .capture.images import exposure_factor, resize_images, resize_masks
 from .normals.render_layer import comparable, render_layer
 from .physics.camera import Cameras
 from .physics.environment import EnvironmentMap
-from .render.compare import RERENDER_WIDTH, Rerendering, rerender
+from .render.compare import RERENDER_WIDTH, Rerendering, photos_at, rerender
 from .render.differentiable import mesh_two_bounce
 from .render.raycast import RayCaster, object_masks
 
 
 REFERENCE_EDGE = 0.015  # the edge length the Laplacian weights are given for
 # The refined mesh may re-render worse than its input by this share before the input is kept:
-# the same mesh re-rendered with another sampling seed scores within ~0.5%.
+# the same mesh re-rendered with other sampling seeds scores within ~0.2% (duck, val480).
 RERENDER_TOLERANCE = 0.01
 
 
@@ -354,15 +353,11 @@ class _PhotoTarget:
 
     @classmethod
     def of(cls, capture, hull: VisualHull, width: int, envmap_height: int) -> "_PhotoTarget":
-        V, H, W = capture.masks.shape
-        width = min(int(width), W)
-        height = max(1, round(width * H / W))
-        photos = torch.as_tensor(capture.images).float()
-        factor = exposure_factor(photos)
+        photos, masks, factor = photos_at(capture, width)
+        height, width = masks.shape[1:]
         cams = hull.cameras_normalized(capture.cameras).with_resolution(width, height).to(device="cpu",
                                                                                        dtype=torch.float32)
-        return cls(cams, resize_images(photos * factor, width, height).clamp(0, 1),
-                   resize_masks(torch.as_tensor(capture.masks).bool(), width, height),
+        return cls(cams, photos, masks,
                    EnvironmentMap(torch.as_tensor(capture.envmap).float() * factor).resized(envmap_height),
                    float(capture.ior))
 

@@ -42,21 +42,30 @@ class Rerendering:
         return float(np.mean(self.error))
 
 
-def rerender(mesh: trimesh.Trimesh, capture, width: int = RERENDER_WIDTH, samples_per_axis: int = 2,
-             threads: int | None = None, device: str = "cpu") -> Rerendering:
-    """Render `mesh` (closed, outward, the capture's frame) under `capture`'s environment map from
-    its cameras at `width` x (width * H / W) pixels and compare with the photos. capture: anything
-    with images (V,H,W,3) linear, masks (V,H,W), envmap, cameras and ior (a loaded `Capture`)."""
+def photos_at(capture, width: int) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """The capture's photos at `width` x (width * H / W) (no wider than they are), normalized (the
+    exposure factor that brings their mean to 0.5, then clipped to [0, 1]), its masks at that size,
+    and the factor (the environment map takes the same)."""
     V, H, W = capture.masks.shape
     width = min(int(width), W)
     height = max(1, round(width * H / W))
     photos = torch.as_tensor(capture.images).float()
     factor = exposure_factor(photos)
-    photos = resize_images(photos * factor, width, height).clamp(0, 1)
-    masks = resize_masks(torch.as_tensor(capture.masks).bool(), width, height)
+    return (resize_images(photos * factor, width, height).clamp(0, 1),
+            resize_masks(torch.as_tensor(capture.masks).bool(), width, height), factor)
+
+
+def rerender(mesh: trimesh.Trimesh, capture, width: int = RERENDER_WIDTH, samples_per_axis: int = 2,
+             threads: int | None = None, device: str = "cpu", seed: int = 0) -> Rerendering:
+    """Render `mesh` (closed, outward, the capture's frame) under `capture`'s environment map from
+    its cameras at `width` x (width * H / W) pixels and compare with the photos. capture: anything
+    with images (V,H,W,3) linear, masks (V,H,W), envmap, cameras and ior (a loaded `Capture`)."""
+    photos, masks, factor = photos_at(capture, width)
+    height, width = masks.shape[1:]
     cams = capture.cameras.with_resolution(width, height)
     envmap = EnvironmentMap(torch.as_tensor(capture.envmap).float())
-    config = RenderConfig(ior=capture.ior, samples_per_axis=samples_per_axis, threads=threads, device=device)
+    config = RenderConfig(ior=capture.ior, samples_per_axis=samples_per_axis, threads=threads, device=device,
+                          seed=seed)
     result = render_views(mesh, envmap, cams, config)
     renders = (result.image.cpu() * factor).clamp(0, 1)
     silhouettes = result.mask.cpu()
