@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 
 from lookingglass.config import STAGES, PipelineConfig
@@ -17,8 +19,11 @@ from lookingglass.data.rigs import paper_rig
 from lookingglass.errors import ConfigError
 from lookingglass.hull import HullConfig, carve_visual_hull
 from lookingglass.metrics import shape_metrics
+from lookingglass.physics.constants import IOR_GLASS
+from lookingglass.physics.environment import EnvironmentMap
 from lookingglass.refine import RefineConfig, refine_surface, silhouette_iou, uniform_laplacian
 from lookingglass.render.raycast import object_masks
+from lookingglass.render.tracer import RenderConfig, render_views
 
 # a coarser surface than the default (0.015) keeps the tests fast; the method is the same
 CONFIG = RefineConfig(edge_length=0.035)
@@ -133,3 +138,30 @@ def test_the_stage_is_configured():
         RefineConfig(edge_length=0)
     with pytest.raises(ConfigError, match="view_coverage_zero"):
         RefineConfig(view_coverage_zero=0.99, view_coverage_full=0.9)
+
+
+def test_photos_are_checked_and_the_photometric_term_descends(scene):
+    """With the photos (the ellipsoid rendered as glass by the renderer), the keep check
+    re-renders input and result against them and keeps the one that explains them better; the
+    opt-in photometric term lowers its own loss step by step."""
+    gt, cameras, masks, hull = scene
+    u = torch.linspace(0, 1, 64)
+    v = torch.linspace(0, 1, 32)[:, None]
+    env = torch.stack([0.2 + u.expand(32, -1), 0.2 + v.expand(-1, 64), 0.5 + 0.4 * torch.sin(9 * u) * v], -1)
+    small = cameras.with_resolution(160, 120)
+    photos = render_views(gt, EnvironmentMap(env), small, RenderConfig(samples_per_axis=2)).image
+    photos = torch.nn.functional.interpolate(photos.permute(0, 3, 1, 2), size=masks.shape[1:], mode="bilinear")
+    capture = SimpleNamespace(images=photos.permute(0, 2, 3, 1).numpy(), masks=masks, envmap=env.numpy(),
+                              cameras=cameras, ior=IOR_GLASS)
+    config = dataclasses.replace(CONFIG, photometric_iterations=2, rerender_width=80)
+    result = refine_surface(lumpy_shrunken(gt), hull, masks, cameras, config, capture=capture)
+    report = result.report
+    losses = report["photometric_loss"]
+    assert len(losses) == 3 and losses[-1] < losses[0] and all(b <= a for a, b in zip(losses, losses[1:]))
+    # The known limit of test_shrunken_lumpy_mesh_is_pulled_onto_the_masks, seen in the photos: the
+    # ridges the local pulls leave (CDN-mean 1.7 -> 9.3 degrees) double the re-rendering error
+    # (0.016 -> 0.031; the ellipsoid itself scores 0.002), so the input is kept, and said why.
+    rr_in, rr_out = report["rerender_error"]
+    assert rr_out > 1.5 * rr_in and report["kept"] == "input" and "re-rendering error" in report["kept_why"]
+    assert result.rerendering.error.shape == (len(masks),)
+    assert abs(result.rerendering.mean_error - rr_in) < 1e-4  # the picture shows the kept mesh
