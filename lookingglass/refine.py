@@ -47,7 +47,11 @@ the mesh grew spikes (outside term 2e-4 -> 0.1 px^2). The linear solves fixed th
   shallow ridges (CDN 1.7 -> 9) while the networks' lumpy surfaces get smoother.
 The normal term of the issue (first-hit normals against the network's N1 where its rendering
 error beats the hull's) is not implemented: on this set the predicted N1 is worse than the hull's
-(median 7.0 vs 6.9 deg), so it would have little to trust.
+(median 7.0 vs 6.9 deg), and gating it by the rendering error only brings it to 0.96 x the hull's.
+The photometric term (`photometric_iterations`, off) lowers the re-rendering error but makes the
+normals worse against the ground truth (docs/results.md). What the stage does use the photos for is
+the keep check: input and refined mesh are re-rendered as glass (`render.compare`) and the one
+that explains the photos worse is not kept.
 """
 
 from __future__ import annotations
