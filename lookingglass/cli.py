@@ -22,6 +22,8 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
 
 WORKERS_HELP = ("Scenes evaluated at once on the CPU, one process each (0: one per core; with a GPU, one "
                 "process).")
+FORCE_HELP = ("Replace a non-empty output folder: whole, and only once this run has finished (until then it is "
+              "written in a temporary folder beside it).")
 PRESET_HELP = (f"Preset the config options start from: {', '.join(PRESET_NAMES)} (lookingglass/presets.py); "
                f"the config options' shown defaults are {DEFAULT_PRESET}'s; other presets' values, where they differ, "
                "end their help.")
@@ -44,13 +46,14 @@ EVAL_SHAPES_OPTIONS = ConfigOptions("pipeline", only=frozenset({"surface.points"
 def reconstruct(
     ctx: typer.Context,
     scene_dir: Path = typer.Argument(..., help="Scene folder with scene.json, images, masks and envmap."),
-    out: Path = typer.Option(..., "--out", help="Output folder (must be empty unless --force)."),
+    out: Path = typer.Option(..., "--out", help="Output folder (missing or empty, unless --force); it appears when "
+                                                "the run has finished."),
     preset: Optional[str] = typer.Option(None, help=PRESET_HELP + " paper: the paper's 500 + 500 latent steps, "
                                                                   "for a GPU."),
     config: Optional[Path] = typer.Option(None, "--config", help="Re-run a saved configuration: an earlier run's "
                                                                  "report.json (or a config JSON); the config "
                                                                  "options given override it."),
-    force: bool = typer.Option(False, "--force", help="Overwrite a non-empty output folder."),
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Reconstruct the object's surface; writes mesh.ply, visual_hull.ply, points.ply, normals/ and report.json."""
@@ -95,7 +98,7 @@ def import_paper(
     envmap_scale: float = typer.Option(1.0, help="Factor bringing the envmap into the images' units."),
     fov_x: float = typer.Option(PAPER_CAPTURE_FOV_X_DEG, "--fov-x", help="Horizontal field of view in degrees."),
     size: Optional[tuple[int, int]] = typer.Option(None, "--size", help="Resize images and masks to W H."),
-    force: bool = typer.Option(False, "--force", help="Overwrite a non-empty output folder."),
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Convert the paper's real-capture layout into a scene folder."""
     from .capture.images import check_image_size
@@ -118,7 +121,7 @@ def render(
     size: Optional[tuple[int, int]] = typer.Option(None, "--size", help="Image size W H."),
     ior: float = typer.Option(IOR_GLASS, help="Index of refraction of the object."),
     seed: int = typer.Option(0, help="Seed of the rig jitter and the anti-aliasing."),
-    force: bool = typer.Option(False, "--force", help="Overwrite an existing scene folder."),
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Render a glass mesh under an environment map into a scene folder (images, masks, cameras)."""
     import math
@@ -166,7 +169,7 @@ def demo(
     seed: int = typer.Option(1, help="Shape, environment and rig seed."),
     views: int = typer.Option(10, help="5, 10 or 20 views."),
     size: tuple[int, int] = typer.Option((240, 180), "--size", help="Image size W H."),
-    force: bool = typer.Option(False, "--force", help="Overwrite a non-empty output folder."),
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
