@@ -79,6 +79,7 @@ def resolve_device(name: str) -> str:
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise LookingGlassError(f"device '{name}' requested but CUDA is not available")
     if name.startswith("cuda:") and int(name[5:]) >= torch.cuda.device_count():
-        raise LookingGlassError(f"device '{name}' requested but there {'is' if torch.cuda.device_count() == 1 else 'are'} "
-                                f"only {torch.cuda.device_count()} CUDA device(s) (cuda:0 ...)")
+        count = torch.cuda.device_count()
+        raise LookingGlassError(f"device '{name}' requested but this machine has {count} CUDA device(s): "
+                                f"cuda:0 to cuda:{count - 1}")
     return name

@@ -87,7 +87,8 @@ def _given_weights(config: PipelineConfig) -> NormalWeights | None:
     return load_normal_net(config.normals.weights) if config.normals.weights else None
 
 
-def _normal_weights(capture, config: PipelineConfig, given: NormalWeights | None) -> tuple[NormalWeights | None, int, int]:
+def _normal_weights(capture, config: PipelineConfig,
+                    given: NormalWeights | None) -> tuple[NormalWeights | None, int, int]:
     """The normal net the config names (`given`, loaded) or the shipped one for the nearest view
     count, the view count it was trained for and the one asked for; checked against the capture
     before any stage runs (the net resizes the photos, so their aspect must be its own, and it

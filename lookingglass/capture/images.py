@@ -178,7 +178,8 @@ def read_image(path: str | os.PathLike, encoding: str = "srgb") -> np.ndarray:
         raise LookingGlassError("image contains NaN or infinite values", path)
     if is_hdr and (img < 0).any():
         count = int((img < 0).any(axis=-1).sum())
-        raise LookingGlassError(f"image has negative radiance values ({count} pixel{'s' if count > 1 else ''}, down to {float(img.min()):.3g}); "
+        raise LookingGlassError(f"image has negative radiance values ({count} pixel{'s' if count > 1 else ''}, "
+                                f"down to {float(img.min()):.3g}); "
                                 "clip them to 0", path)
     if not is_hdr and encoding == "srgb":
         img = srgb_to_linear(img)

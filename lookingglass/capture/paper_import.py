@@ -32,7 +32,8 @@ import numpy as np
 from ..errors import LookingGlassError
 from ..physics.constants import PAPER_CAPTURE_FOV_X_DEG as PAPER_FOV_X_DEG
 from ..fileio import check_output_dir, staged_dir
-from .images import HDR_SUFFIXES, check_image_size, read_envmap, read_image, read_mask, read_raw, write_image, write_mask
+from .images import (HDR_SUFFIXES, check_image_size, read_envmap, read_image, read_mask, read_raw, write_image,
+                     write_mask)
 from .scene import SCENE_FILE, SceneSpec, ViewSpec, load_capture, save_scene
 
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
