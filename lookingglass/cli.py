@@ -12,7 +12,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from .cliconfig import ConfigOptions, apply_config_flags, config_command
-from .errors import LookingGlassError
+from .errors import Interrupted, LookingGlassError
 from .physics.constants import IOR_GLASS, PAPER_CAPTURE_FOV_X_DEG
 from .presets import DEFAULT_PRESET, PRESET_NAMES
 
@@ -22,6 +22,8 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
 
 WORKERS_HELP = ("Scenes evaluated at once on the CPU, one process each (0: one per core; with a GPU, one "
                 "process).")
+FORCE_HELP = ("Replace a non-empty output folder: whole, and only once this run has finished (until then it is "
+              "written in a temporary folder beside it).")
 PRESET_HELP = (f"Preset the config options start from: {', '.join(PRESET_NAMES)} (lookingglass/presets.py); "
                f"the config options' shown defaults are {DEFAULT_PRESET}'s; other presets' values, where they differ, "
                "end their help.")
@@ -44,13 +46,14 @@ EVAL_SHAPES_OPTIONS = ConfigOptions("pipeline", only=frozenset({"surface.points"
 def reconstruct(
     ctx: typer.Context,
     scene_dir: Path = typer.Argument(..., help="Scene folder with scene.json, images, masks and envmap."),
-    out: Path = typer.Option(..., "--out", help="Output folder (must be empty unless --force)."),
+    out: Path = typer.Option(..., "--out", help="Output folder (missing or empty, unless --force); it appears when "
+                                                "the run has finished."),
     preset: Optional[str] = typer.Option(None, help=PRESET_HELP + " paper: the paper's 500 + 500 latent steps, "
                                                                   "for a GPU."),
     config: Optional[Path] = typer.Option(None, "--config", help="Re-run a saved configuration: an earlier run's "
                                                                  "report.json (or a config JSON); the config "
                                                                  "options given override it."),
-    force: bool = typer.Option(False, "--force", help="Overwrite a non-empty output folder."),
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Reconstruct the object's surface; writes mesh.ply, visual_hull.ply, points.ply, normals/ and report.json."""
@@ -78,8 +81,10 @@ def evaluate(
     seed: int = typer.Option(0, help="Sampling seed."),
 ) -> None:
     """Print CD (x1e4), Metro (x1e3), CDN-mean and CDN-med (degrees) as JSON, on the unit-sphere scale of GT."""
-    from .metrics import evaluate_mesh_files
+    from .metrics import MAX_SAMPLES, evaluate_mesh_files
 
+    if not 1 <= samples <= MAX_SAMPLES:
+        raise LookingGlassError(f"--samples must be from 1 to {MAX_SAMPLES:,}, got {samples}")
     print(json.dumps(evaluate_mesh_files(pred_mesh, gt_mesh, samples=samples, seed=seed), indent=2))
 
 
@@ -93,11 +98,14 @@ def import_paper(
     envmap_scale: float = typer.Option(1.0, help="Factor bringing the envmap into the images' units."),
     fov_x: float = typer.Option(PAPER_CAPTURE_FOV_X_DEG, "--fov-x", help="Horizontal field of view in degrees."),
     size: Optional[tuple[int, int]] = typer.Option(None, "--size", help="Resize images and masks to W H."),
-    force: bool = typer.Option(False, "--force", help="Overwrite a non-empty output folder."),
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Convert the paper's real-capture layout into a scene folder."""
+    from .capture.images import check_image_size
     from .capture.paper_import import import_paper as run
 
+    if size is not None:
+        size = check_image_size(size, "--size")
     path = run(cams=cams, images=images, masks=masks, envmap=envmap, out=out, envmap_scale=envmap_scale,
                fov_x_deg=fov_x, size=size, force=force)
     Console(stderr=True).print(f"wrote {path}")
@@ -113,23 +121,35 @@ def render(
     size: Optional[tuple[int, int]] = typer.Option(None, "--size", help="Image size W H."),
     ior: float = typer.Option(IOR_GLASS, help="Index of refraction of the object."),
     seed: int = typer.Option(0, help="Seed of the rig jitter and the anti-aliasing."),
-    force: bool = typer.Option(False, "--force", help="Overwrite an existing scene folder."),
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Render a glass mesh under an environment map into a scene folder (images, masks, cameras)."""
-    from .capture.images import read_envmap, read_raw
+    import math
+
+    from .capture.images import check_image_size, read_envmap, read_raw
     from .capture.scene import SceneSpec
     from .data.rigs import paper_rig
     from .data.synthetic import render_capture
+    from .fileio import check_output_dir, staged_dir
+    from .meshes import check_glass_mesh
     from .metrics import load_mesh
     from .render.tracer import RenderConfig
 
+    # every option and input first: nothing is written before all are good
     if (scene is None) == (rig is None):
         raise LookingGlassError("give exactly one of --scene SCENE_JSON or --rig 5|10|20")
+    if rig is not None and rig not in (5, 10, 20):
+        raise LookingGlassError(f"--rig must be 5, 10 or 20, got {rig}")
+    if size is not None:
+        size = check_image_size(size, "--size")
+    if not (math.isfinite(ior) and ior > 0):
+        raise LookingGlassError(f"--ior must be a positive number, got {ior}")
+    inputs = [p for p in (mesh, envmap, scene) if p is not None]
+    check_output_dir(out, force, inputs)
     glass = load_mesh(mesh)
+    check_glass_mesh(glass, mesh)
     env = read_envmap(envmap)
     if rig is not None:
-        if rig not in (5, 10, 20):
-            raise LookingGlassError(f"--rig must be 5, 10 or 20, got {rig}")
         w, h = size or (480, 360)
         cameras = paper_rig(rig, seed, width=w, height=h)
     else:
@@ -138,7 +158,8 @@ def render(
             first, _ = read_raw(Path(scene).parent / spec.views[0].image)
             size = (first.shape[1], first.shape[0])
         cameras = spec.cameras(*size)
-    render_capture(glass, env, cameras, out, RenderConfig(ior=ior, seed=seed), overwrite=force)
+    with staged_dir(out, force, doing=f"render of {mesh}", inputs=inputs) as work:
+        render_capture(glass, env, cameras, work, RenderConfig(ior=ior, seed=seed), overwrite=True)
     Console(stderr=True).print(f"wrote {out / 'scene.json'} ({cameras.num_views} views, {cameras.width}x{cameras.height})")
 
 
@@ -148,7 +169,7 @@ def demo(
     seed: int = typer.Option(1, help="Shape, environment and rig seed."),
     views: int = typer.Option(10, help="5, 10 or 20 views."),
     size: tuple[int, int] = typer.Option((240, 180), "--size", help="Image size W H."),
-    force: bool = typer.Option(False, "--force", help="Overwrite a non-empty output folder."),
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
@@ -161,33 +182,36 @@ def demo(
     from .data.rigs import paper_rig
     from .data.shapes import random_shape
     from .data.synthetic import render_capture
-    from .fileio import write_atomic, write_json
+    from .capture.images import check_image_size
+    from .capture.scene import load_capture
+    from .fileio import staged_dir, write_atomic, write_json
     from .metrics import load_mesh, shape_metrics
-    from .pipeline import prepare_output_dir, reconstruct as run
+    from .pipeline import reconstruct as run
     from .presets import preset as make_preset
     from .progress import Reporter
+    from .viz import overview
 
     if views not in (5, 10, 20):
         raise LookingGlassError(f"--views must be 5, 10 or 20, got {views}")
+    size = check_image_size(size, "--size")
+    config = dataclasses.replace(make_preset(DEFAULT_PRESET).pipeline, device=device).resolved()
     reporter = Reporter(quiet=quiet)
-    prepare_output_dir(out, force)
-    with reporter.stage("synthesize", "procedural glass shape, environment and rendered photos"):
-        shape = random_shape(seed)
-        write_atomic(out / "ground_truth.ply", lambda p: shape.export(p, file_type="ply"))
-        env = procedural_envmap(np.random.default_rng(seed), 256)
-        cameras = paper_rig(views, seed, width=size[0], height=size[1])
-        render_capture(shape, env, cameras, out / "scene", overwrite=True)
-    config = dataclasses.replace(make_preset(DEFAULT_PRESET).pipeline, device=device)
-    report = run(out / "scene", out / "result", config, force=True, reporter=reporter)
-    mesh = load_mesh(out / "result" / "mesh.ply")
-    scores = shape_metrics(mesh, shape)
-    write_json(out / "scores.json", {"mesh_from": report["mesh_from"], **scores})
-    from .capture.scene import load_capture
-    from .viz import overview
-
-    capture = load_capture(out / "scene")
-    overview(out / "overview.png", capture.images[0], capture.masks[0], capture.cameras.select(0),
-             {"ground truth": shape, "reconstruction": mesh})
+    with staged_dir(out, force, doing="demo") as work:
+        with reporter.stage("synthesize", "procedural glass shape, environment and rendered photos"):
+            shape = random_shape(seed)
+            write_atomic(work / "ground_truth.ply", lambda p: shape.export(p, file_type="ply"))
+            env = procedural_envmap(np.random.default_rng(seed), 256)
+            cameras = paper_rig(views, seed, width=size[0], height=size[1])
+            render_capture(shape, env, cameras, work / "scene", overwrite=True)
+        report = run(work / "scene", work / "result", config, force=True, reporter=reporter)
+        report["scene"] = str((out / "scene").resolve())  # where the scene will be, not the temporary folder
+        write_json(work / "result" / "report.json", report)
+        mesh = load_mesh(work / "result" / "mesh.ply")
+        scores = shape_metrics(mesh, shape)
+        write_json(work / "scores.json", {"mesh_from": report["mesh_from"], **scores})
+        capture = load_capture(work / "scene")
+        overview(work / "overview.png", capture.images[0], capture.masks[0], capture.cameras.select(0),
+                 {"ground truth": shape, "reconstruction": mesh})
     reporter.info(f"overview {out / 'overview.png'} (photo | mask | ground-truth normals | reconstructed normals)")
     reporter.info(f"mesh {out / 'result' / 'mesh.ply'} ({len(mesh.faces)} faces) vs ground truth: "
                   f"CD {scores['cd']:.2f} (x1e4), Metro {scores['metro']:.2f} (x1e3), "
@@ -251,6 +275,7 @@ def train_normals(
     from .presets import preset as make_preset
     from .progress import Reporter
 
+    device = _device(device)  # checked before any work
     if variant is not None and variant not in VARIANTS:
         raise LookingGlassError(f"--variant must be one of {', '.join(VARIANTS)}, got {variant!r}")
     config = apply_config_flags(ctx, make_preset(preset).normal_training)
@@ -260,7 +285,7 @@ def train_normals(
     net = dataclasses.replace(config.net, width=dataset.config.width, height=dataset.config.height)
     if variant is not None:
         net = dataclasses.replace(net, use_error_map=VARIANTS[variant][0], use_cost_volume=VARIANTS[variant][1])
-    run(dataset, out, dataclasses.replace(config, net=net), device=_device(device), reporter=Reporter(quiet=quiet))
+    run(dataset, out, dataclasses.replace(config, net=net), device=device, reporter=Reporter(quiet=quiet))
 
 
 @app.command("train-points", cls=config_command(TRAIN_POINTS_OPTIONS))
@@ -282,10 +307,11 @@ def train_points(
     from .progress import Reporter
     from .weights import load_normal_net
 
+    device = _device(device)  # checked before any work
     config = apply_config_flags(ctx, make_preset(preset).point_training)
     views = load_normal_net(normals).net.cfg.num_views
     dataset = TransparentSceneDataset(data, "train", views=views, augment=False)
-    run(dataset, out, config, normals, device=_device(device), reporter=Reporter(quiet=quiet),
+    run(dataset, out, config, normals, device=device, reporter=Reporter(quiet=quiet),
         threads=threads)
 
 
@@ -306,6 +332,7 @@ def eval_normals(
     from .normals.latent import LatentOptConfig
     from .progress import Reporter
 
+    device = _device(device)  # checked before any work
     paths = {}
     for item in weights:
         name, sep, path = item.partition("=")
@@ -314,7 +341,7 @@ def eval_normals(
         paths[name] = Path(path)
     latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
     dataset = TransparentSceneDataset(data, "test", views=views)
-    results = evaluate_normals(dataset, paths, latent, max_scenes, Reporter(quiet=quiet), _device(device), workers)
+    results = evaluate_normals(dataset, paths, latent, max_scenes, Reporter(quiet=quiet), device, workers)
     print(markdown_table(results))
 
 
@@ -345,6 +372,7 @@ def eval_shapes(
     from .progress import Reporter
     from .weights import shipped_weights
 
+    device = _device(device)  # checked before any work
     surface = apply_config_flags(ctx, make_preset().pipeline).surface
     chosen = tuple(s.strip().upper() for s in strategies.split(",") if s.strip())
     if not chosen or any(s not in STRATEGIES for s in chosen):
@@ -375,7 +403,7 @@ def eval_shapes(
         reporter.info(f"resuming from {json_out}: {len(done)} scene(s) done")
     save = (lambda partial: write_json(json_out, {"settings": settings, **partial})) if json_out else None
     result = evaluate_shapes(dataset, weights, chosen, latent, surface, max_scenes=max_scenes, reporter=reporter,
-                             point_weights=point_weights, done=done, on_scene=save, device=_device(device),
+                             point_weights=point_weights, done=done, on_scene=save, device=device,
                              workers=workers)
     if save is not None:
         save(result)
@@ -398,8 +426,11 @@ def generate_validation(
     from .data.validation import generate_validation_set
     from .progress import Reporter
 
+    from .capture.images import check_image_size
+
     if views not in (5, 10, 20):
         raise LookingGlassError(f"--views must be 5, 10 or 20, got {views}")
+    size = check_image_size(size, "--size")
     names = [n.strip() for n in shapes.split(",") if n.strip()] or None
     path = generate_validation_set(out, names, views, size, samples_per_axis, seed, reporter=Reporter(quiet=quiet))
     Console(stderr=True).print(f"wrote {path}")
@@ -435,9 +466,26 @@ def main() -> None:
         # soft_wrap: one line whatever the terminal's width (rich wraps at 80 columns off a tty)
         Console(stderr=True, highlight=False, soft_wrap=True).print(f"[red]error:[/red] {escape(str(exc))}")
         sys.exit(2)
-    except KeyboardInterrupt:
-        Console(stderr=True).print("interrupted")
+    except (KeyboardInterrupt, SystemExit) as exc:
+        # Ctrl-C: typer turns it into exit status 130 (SystemExit, the KeyboardInterrupt in its chain).
+        # One line: what was interrupted and, from the command that knew, what it left (Interrupted).
+        stop = _interrupt_of(exc)
+        if stop is None:
+            raise
+        Console(stderr=True, highlight=False, soft_wrap=True).print(escape(str(stop) if isinstance(stop, Interrupted)
+                                                                           else "interrupted"))
         sys.exit(130)
+
+
+def _interrupt_of(exc: BaseException) -> KeyboardInterrupt | None:
+    """The KeyboardInterrupt that `exc` is or was raised from (its cause / context chain), or None."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 if __name__ == "__main__":

@@ -22,6 +22,7 @@ __all__ = [
     "signed_volume",
     "orient_outward",
     "require_closed_and_oriented",
+    "check_glass_mesh",
     "face_components",
     "largest_component",
     "without_crumbs",
@@ -81,6 +82,25 @@ def require_closed_and_oriented(mesh: trimesh.Trimesh, what: str, hint: str = ""
         raise LookingGlassError(f"{what} is not watertight (open or non-manifold edges){hint}")
     if not mesh.volume > 0:
         raise LookingGlassError(f"{what} encloses no volume")
+
+
+def check_glass_mesh(mesh: trimesh.Trimesh, path) -> None:
+    """Raise LookingGlassError naming the file `path` unless `mesh` is a solid a renderer can trace
+    as glass: closed (watertight, consistently wound), wound outward (positive volume) and free of
+    self-intersections (where sheets cross, inside and outside are undefined)."""
+    if not mesh.is_watertight or not mesh.is_winding_consistent:
+        open_edges = int(len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)))
+        what = f"{open_edges} boundary edges" if open_edges else "non-manifold edges or inconsistent winding"
+        raise LookingGlassError(f"mesh is not closed ({what}): a glass object must be a watertight surface", path)
+    if not mesh.volume > 0:
+        raise LookingGlassError("mesh is oriented inward (its faces' normals point into the object, negative "
+                                "volume): flip its faces", path)
+    ms = _meshset(mesh.vertices, mesh.faces)
+    ms.compute_selection_by_self_intersections_per_face()
+    crossing = int(ms.current_mesh().selected_face_number())
+    if crossing:
+        raise LookingGlassError(f"mesh intersects itself ({crossing} faces cross others): inside and outside are "
+                                "undefined there; repair it (e.g. a boolean union of its parts)", path)
 
 
 # ---------------------------------------------------------------------------------------------

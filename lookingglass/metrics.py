@@ -56,6 +56,7 @@ __all__ = [
 ]
 
 DEFAULT_SAMPLES = 20000
+MAX_SAMPLES = 10_000_000  # per surface; the nearest-neighbour searches grow with it (10 M: minutes, GiBs)
 CD_UNIT = 1e4  # CD is reported x 1e4
 METRO_UNIT = 1e3  # Metro is reported x 1e3
 

@@ -10,7 +10,11 @@ better of the surface and the refined mesh is kept). Outputs (capture frame, wri
   OUT/surface.ply      the surface stage's mesh (refine stage; mesh.ply is then the refined one)
   OUT/refine.png       a few views: the photo, the mask's outline over the kept mesh's silhouette, its re-rendering
   OUT/mesh.ply         the surface of the last stage that ran (the hull when only it ran)
-  OUT/report.json      stages run, per-stage seconds and peak memory, sizes, versions, config
+  OUT/report.json      stages asked for and run, completed, per-stage seconds and peak memory, sizes,
+                       versions, config
+OUT appears only when the run has finished (it is written in a temporary folder beside it): a failed
+or interrupted run leaves no partial result, and an earlier OUT replaced with --force stays whole
+until then.
 """
 
 from __future__ import annotations
@@ -26,10 +30,10 @@ import torch
 import trimesh
 
 from . import __version__
-from .capture.scene import load_capture
+from .capture.scene import SCENE_FILE, load_capture
 from .config import STAGES, PipelineConfig, config_to_dict
 from .errors import LookingGlassError
-from .fileio import write_atomic, write_json
+from .fileio import staged_dir, write_atomic, write_json
 from .hull import VisualHull, carve_visual_hull
 from .normals.stage import NormalStageResult, run_normal_stage, write_normal_views
 from .points.stage import surface_from_normals
@@ -50,15 +54,6 @@ def versions() -> dict:
     return {"lookingglass": __version__, "python": platform.python_version(), "torch": torch.__version__,
             "numpy": numpy.__version__, "trimesh": trimesh.__version__, "scikit-image": skimage.__version__,
             "pymeshlab": getattr(pymeshlab, "__version__", "unknown")}
-
-
-def prepare_output_dir(out_dir: Path, force: bool) -> None:
-    """Create OUT_DIR; refuse a non-empty one unless `force`."""
-    if out_dir.exists() and not out_dir.is_dir():
-        raise LookingGlassError("output path exists and is not a folder", out_dir)
-    if out_dir.exists() and any(out_dir.iterdir()) and not force:
-        raise LookingGlassError("output folder is not empty (use --force to overwrite)", out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
 
 
 def write_mesh(path: Path, mesh: trimesh.Trimesh) -> Path:
@@ -84,21 +79,37 @@ def write_points(path: Path, points: np.ndarray, normals: np.ndarray) -> Path:
     return write_atomic(path, lambda tmp: Path(tmp).write_bytes(header.encode("ascii") + records.tobytes()))
 
 
-def _normal_weights(capture, config: PipelineConfig) -> tuple[NormalWeights | None, int, int]:
-    """The normal net the config names (or the shipped one for the nearest view count), the view
-    count it was trained for and the one asked for; checked against the capture before any stage
-    runs (the net resizes the photos, so their aspect must be its own)."""
+def _given_weights(config: PipelineConfig) -> NormalWeights | None:
+    """The normal net the config names, loaded (so a bad file is refused before any work, even when
+    the run stops before the normals), and the point net it names checked the same way."""
+    if config.surface.point_weights:
+        load_point_net(config.surface.point_weights)
+    return load_normal_net(config.normals.weights) if config.normals.weights else None
+
+
+def _normal_weights(capture, config: PipelineConfig,
+                    given: NormalWeights | None) -> tuple[NormalWeights | None, int, int]:
+    """The normal net the config names (`given`, loaded) or the shipped one for the nearest view
+    count, the view count it was trained for and the one asked for; checked against the capture
+    before any stage runs (the net resizes the photos, so their aspect must be its own, and it
+    normalizes their exposure, so they may not all be black)."""
     requested = config.normals.views or capture.num_views
-    path, trained_views = (Path(config.normals.weights), requested) if config.normals.weights \
-        else shipped_weights(requested)
-    if path is None:
-        return None, 0, requested
-    weights = load_normal_net(path)
+    if given is not None:
+        weights, trained_views = given, requested
+    else:
+        path, trained_views = shipped_weights(requested)
+        if path is None:
+            return None, 0, requested
+        weights = load_normal_net(path)
     width, height = weights.net.cfg.width, weights.net.cfg.height
     if abs(capture.width / capture.height - width / height) > 0.02 * width / height:
         raise LookingGlassError(f"the photos are {capture.width}x{capture.height}, but the normal network takes "
                                 f"{width}x{height} images (aspect {width / height:.3f}): crop the photos, masks and "
                                 "field of view to that aspect, or stop after the visual hull", capture.root)
+    if not float(capture.images.mean(dtype=np.float64)) > 0:
+        raise LookingGlassError(f"every photo is black (mean radiance 0, all {capture.num_views} views): the normal "
+                                "network has nothing to see; check the images' exposure and encoding, or stop after "
+                                "the visual hull", capture.root / SCENE_FILE)
     return weights, trained_views, requested
 
 
@@ -153,7 +164,16 @@ def _refine(capture, hull: VisualHull, surface: trimesh.Trimesh, config: Pipelin
 
 def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = None, force: bool = False,
                 reporter: Reporter | None = None) -> dict:
-    """Reconstruct the object in the scene folder `scene_dir`; returns the report dict."""
+    """Reconstruct the object in the scene folder `scene_dir` into the folder `out_dir`; returns the
+    report dict (also OUT/report.json).
+
+    Everything that can be checked before work starts is (the config and its device, the weights
+    files it names, that `out_dir` can be written and, unless `force`, is empty or missing); then
+    the run writes into a temporary folder beside `out_dir` (`fileio.staged_dir`) that becomes
+    `out_dir` only when every stage asked for has finished (with `force` the old folder is replaced
+    whole at that moment). A failed or interrupted run leaves `out_dir` as it was. report.json says
+    which stages were asked for and which ran, and `"completed": true`.
+    """
     config = config or PipelineConfig()
     config = dataclasses.replace(config)  # validated (a config edited after it was made is checked here)
     wanted = STAGES[:STAGES.index(config.stop_after) + 1]
@@ -166,14 +186,26 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
     device = config.device
     if scene_dir.resolve() == out_dir.resolve():
         raise LookingGlassError("output folder must differ from the scene folder", out_dir)
-    prepare_output_dir(out_dir, force)
+    given = _given_weights(config)
+    inputs = [scene_dir, *(p for p in (config.normals.weights, config.surface.point_weights) if p)]
+    with staged_dir(out_dir, force, doing=f"reconstruct of {scene_dir}", inputs=inputs) as work:
+        report = _run(scene_dir, work, config, wanted, given, reporter)
+        report["total_seconds"] = round(time.perf_counter() - start, 3)
+        write_json(work / "report.json", report)
+    return report
 
+
+def _run(scene_dir: Path, out_dir: Path, config: PipelineConfig, wanted: tuple[str, ...],
+         given: NormalWeights | None, reporter: Reporter) -> dict:
+    """The stages, writing into `out_dir` (the temporary folder); returns the report."""
+    device = config.device
+    first = len(reporter.stages)  # a reporter may have timed earlier work (the demo's, other scenes')
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         with reporter.stage("load", f"load {scene_dir}") as rec:
             capture = load_capture(scene_dir)
             rec.update(views=capture.num_views, image_size=[capture.width, capture.height])
-            weights, trained_views, requested = _normal_weights(capture, config) if "normals" in wanted \
+            weights, trained_views, requested = _normal_weights(capture, config, given) if "normals" in wanted \
                 else (None, 0, 0)
 
         with reporter.stage("visual_hull", "visual hull") as rec:
@@ -199,23 +231,23 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
     for message in messages:
         reporter.warn(message)
 
-    report = {
+    return {
+        "completed": True,
         "scene": str(scene_dir.resolve()),
         "num_views": capture.num_views,
         "image_size": [capture.width, capture.height],
         "ior": capture.ior,
         "device": device,
-        "stages_run": [s["name"] for s in reporter.stages if s["name"] in STAGES],
-        "stages": reporter.stages,
+        "stages_requested": list(wanted),
+        "stages_run": [s["name"] for s in reporter.stages[first:] if s["name"] in STAGES],
+        "stages": reporter.stages[first:],
         "mesh_from": best_stage,
         "normalization": {"center": [float(c) for c in hull.center], "scale": float(hull.scale)},
         "warnings": messages,
-        "total_seconds": round(time.perf_counter() - start, 3),
+        "total_seconds": None,
         "peak_memory_mb": round(peak_memory_mb(), 1),
         **({"gpu_peak_memory_mb": round(torch.cuda.max_memory_allocated(device) / 2**20, 1)}
            if device.startswith("cuda") else {}),
         "versions": versions(),
         "config": config_to_dict(config),
     }
-    write_json(out_dir / "report.json", report)
-    return report

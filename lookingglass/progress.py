@@ -11,6 +11,8 @@ from typing import Iterable, Iterator, TypeVar
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from .errors import Interrupted
+
 T = TypeVar("T")
 
 
@@ -36,11 +38,17 @@ class Reporter:
 
     @contextlib.contextmanager
     def stage(self, name: str, description: str | None = None) -> Iterator[dict]:
-        """Time a pipeline stage. The yielded dict collects the stage's figures for the report."""
+        """Time a pipeline stage. The yielded dict collects the stage's figures for the report.
+        A Ctrl-C in the stage comes out as `Interrupted`, naming the stage."""
         record: dict = {"name": name}
         start = time.perf_counter()
-        with self.console.status(f"{description or name} ..."):
-            yield record
+        try:
+            with self.console.status(f"{description or name} ..."):
+                yield record
+        except KeyboardInterrupt as exc:
+            if isinstance(exc, Interrupted):
+                raise
+            raise Interrupted(f"in the {name} stage") from None
         record["seconds"] = round(time.perf_counter() - start, 3)
         record["peak_memory_mb"] = round(peak_memory_mb(), 1)
         self.stages.append(record)

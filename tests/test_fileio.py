@@ -59,3 +59,60 @@ def test_umask_read_without_proc(monkeypatch):
         assert fileio._umask() == 0o027
         assert usual_mode() == 0o640 and usual_mode(directory=True) == 0o750
         assert os.umask(0o027) == 0o027  # unchanged
+
+
+# ---- staged_dir: a command's whole output folder -----------------------------------------------
+from lookingglass.errors import Interrupted, LookingGlassError  # noqa: E402
+from lookingglass.fileio import staged_dir  # noqa: E402
+
+
+def test_staged_dir_appears_finished_with_the_usual_modes(tmp_path):
+    out = tmp_path / "new" / "deeper" / "out"
+    with umask(0o022), staged_dir(out) as work:
+        assert work.parent == out.parent and work.name.startswith(".out.partial-") and not out.exists()
+        (work / "sub").mkdir()
+        write_json(work / "sub" / "a.json", {})
+    assert sorted(p.name for p in out.parent.iterdir()) == ["out"]
+    assert mode(out) == 0o755 and mode(out / "sub") == 0o755 and mode(out / "sub" / "a.json") == 0o644
+
+
+def test_staged_dir_force_replaces_whole_and_failure_keeps_the_old(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "old.txt").write_text("old")
+    with pytest.raises(LookingGlassError, match="not empty"):
+        with staged_dir(out):
+            pass
+    with pytest.raises(RuntimeError):
+        with staged_dir(out, force=True) as work:
+            (work / "new.txt").write_text("new")
+            raise RuntimeError("a stage failed")
+    assert [p.name for p in tmp_path.iterdir()] == ["out"] and (out / "old.txt").read_text() == "old"
+    with staged_dir(out, force=True) as work:
+        (work / "new.txt").write_text("new")
+    assert [p.name for p in out.iterdir()] == ["new.txt"] and [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
+def test_staged_dir_interrupted_says_so_and_removes_what_it_made(tmp_path):
+    out = tmp_path / "made" / "out"
+    with pytest.raises(Interrupted) as info:
+        with staged_dir(out, doing="reconstruct of scene") as work:
+            (work / "mesh.ply").write_text("partial")
+            raise KeyboardInterrupt
+    assert str(info.value) == f"interrupted: reconstruct of scene; no partial result was left ({out} was not created)"
+    assert list(tmp_path.iterdir()) == []  # the parent made for it is gone too
+
+
+def test_check_output_dir_refuses_before_any_work(tmp_path):
+    from lookingglass.fileio import check_output_dir
+
+    (tmp_path / "file").write_text("x")
+    for out, said in [(tmp_path / "file", "not a folder"), (tmp_path / "file" / "o", "is not a folder"),
+                      (tmp_path, "replace the input")]:
+        with pytest.raises(LookingGlassError, match=said):
+            check_output_dir(out, True, inputs=[tmp_path / "scene"])
+    if os.geteuid() != 0:  # root writes anywhere
+        locked = tmp_path / "locked"
+        locked.mkdir(mode=0o555)
+        with pytest.raises(LookingGlassError, match="not writable"):
+            check_output_dir(locked / "o", False)

@@ -6,8 +6,13 @@ In memory, images and environment maps are float32 (H, W, 3) linear RGB; masks a
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
+import tempfile
+import threading
 from pathlib import Path
+from typing import Iterator
 
 import cv2
 import numpy as np
@@ -18,7 +23,23 @@ from ..errors import LookingGlassError
 from ..fileio import write_atomic
 
 HDR_SUFFIXES = {".exr", ".hdr"}
+MIN_ENVMAP_HEIGHT = 8  # pixels: a 16x8 map is the coarsest that still has a sky, a horizon and a ground
+MAX_IMAGE_SIDE = 16384  # pixels: larger sizes are typing errors (one 16384x16384 float image is 3 GiB)
 LDR_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
+
+
+def check_image_size(size, what: str = "size") -> tuple[int, int]:
+    """`size` (W, H) as two ints, each in 1 .. MAX_IMAGE_SIDE; LookingGlassError naming `what`
+    (an option such as "--size") otherwise."""
+    try:
+        w, h = size
+        ok = all(float(s) == int(s) and 1 <= int(s) <= MAX_IMAGE_SIDE for s in (w, h))
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok:
+        raise LookingGlassError(f"{what} must be two whole numbers W H, each from 1 to {MAX_IMAGE_SIDE} pixels, "
+                                f"got {' '.join(map(str, size)) if isinstance(size, (tuple, list)) else size}")
+    return int(w), int(h)
 
 
 def srgb_to_linear(x: np.ndarray) -> np.ndarray:
@@ -40,11 +61,63 @@ def _check_exists(path: Path) -> None:
         raise LookingGlassError("not a file", path)
 
 
+_NATIVE_OUTPUT_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _native_output_held() -> Iterator[None]:
+    """Hold what native code prints to the process's stdout and stderr (file descriptors 1 and 2)
+    during the block: OpenEXR's C++ library prints its own lines about a corrupt file before
+    raising. Held output is passed on when the block succeeds and dropped when it raises (the
+    exception then says what was wrong, in one line). Serialized by a lock: the descriptors are the
+    process's, shared by every thread."""
+    with _NATIVE_OUTPUT_LOCK:
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        held = tempfile.TemporaryFile()
+        saved = []
+        try:
+            for fd in (1, 2):
+                saved.append((fd, os.dup(fd)))
+                os.dup2(held.fileno(), fd)
+        except OSError:  # no such descriptor (an embedding without stdio): nothing to hold
+            for fd, copy in saved:
+                os.dup2(copy, fd)
+                os.close(copy)
+            held.close()
+            yield
+            return
+        ok = False
+        try:
+            yield
+            ok = True
+        finally:
+            _flush_c_stdio()
+            for fd, copy in saved:
+                os.dup2(copy, fd)
+                os.close(copy)
+            if ok:
+                held.seek(0)
+                text = held.read()
+                if text:
+                    os.write(2, text)
+            held.close()
+
+
+def _flush_c_stdio() -> None:
+    """fflush(NULL): C stdio buffers (std::cout shares them) go out to the descriptors now."""
+    with contextlib.suppress(Exception):
+        import ctypes
+
+        ctypes.CDLL(None).fflush(None)
+
+
 def _read_exr(path: Path) -> np.ndarray:
     import OpenEXR
 
     try:
-        with OpenEXR.File(str(path)) as f:
+        with _native_output_held(), OpenEXR.File(str(path)) as f:
             channels = f.channels()
             if "RGB" in channels:
                 rgb = channels["RGB"].pixels
@@ -60,7 +133,7 @@ def _read_exr(path: Path) -> np.ndarray:
     except LookingGlassError:
         raise
     except Exception as exc:  # OpenEXR raises plain exceptions on corrupt files
-        raise LookingGlassError(f"cannot read EXR image ({exc})", path) from None
+        raise LookingGlassError(f"cannot read EXR image: corrupt or truncated file ({exc})", path) from None
     return np.ascontiguousarray(rgb, dtype=np.float32)
 
 
@@ -105,6 +178,11 @@ def read_image(path: str | os.PathLike, encoding: str = "srgb") -> np.ndarray:
     img = img[..., :3]
     if not np.isfinite(img).all():
         raise LookingGlassError("image contains NaN or infinite values", path)
+    if is_hdr and (img < 0).any():
+        count = int((img < 0).any(axis=-1).sum())
+        raise LookingGlassError(f"image has negative radiance values ({count} pixel{'s' if count > 1 else ''}, "
+                                f"down to {float(img.min()):.3g}); "
+                                "clip them to 0", path)
     if not is_hdr and encoding == "srgb":
         img = srgb_to_linear(img)
     return np.ascontiguousarray(img, dtype=np.float32)
@@ -127,16 +205,21 @@ def read_mask(path: str | os.PathLike) -> np.ndarray:
 def read_envmap(path: str | os.PathLike, scale: float = 1.0) -> np.ndarray:
     """An equirectangular environment map as linear float32 (H, W, 3) times `scale`.
 
-    8-bit maps are linearized from sRGB. Rejects NaN/inf, negative values and a width that is
-    not twice the height.
+    8-bit maps are linearized from sRGB. Rejects NaN/inf, negative values, an all-black map, a
+    width that is not twice the height and a height below MIN_ENVMAP_HEIGHT.
     """
     path = Path(path)
     env = read_image(path, encoding="srgb")
     h, w = env.shape[:2]
     if w != 2 * h:
         raise LookingGlassError(f"environment map must be equirectangular with width = 2 x height, got {w}x{h}", path)
+    if h < MIN_ENVMAP_HEIGHT:
+        raise LookingGlassError(f"environment map is {w}x{h}: too small to light anything (at least "
+                                f"{2 * MIN_ENVMAP_HEIGHT}x{MIN_ENVMAP_HEIGHT}; the networks use 256x128)", path)
     if (env < 0).any():
         raise LookingGlassError("environment map has negative radiance values", path)
+    if not env.max() > 0:
+        raise LookingGlassError("environment map is black (all zero): it lights nothing", path)
     if not np.isfinite(scale) or scale <= 0:
         raise LookingGlassError(f"environment map scale must be a positive number, got {scale}", path)
     return env * np.float32(scale)

@@ -21,7 +21,7 @@ from __future__ import annotations
 import os
 import re
 import shutil
-import tempfile
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,8 +31,9 @@ import numpy as np
 
 from ..errors import LookingGlassError
 from ..physics.constants import PAPER_CAPTURE_FOV_X_DEG as PAPER_FOV_X_DEG
-from ..fileio import usual_mode
-from .images import HDR_SUFFIXES, read_envmap, read_image, read_mask, read_raw, write_image, write_mask
+from ..fileio import check_output_dir, staged_dir
+from .images import (HDR_SUFFIXES, check_image_size, read_envmap, read_image, read_mask, read_raw, write_image,
+                     write_mask)
 from .scene import SCENE_FILE, SceneSpec, ViewSpec, load_capture, save_scene
 
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -72,7 +73,7 @@ def read_paper_cameras(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray,
         count = None
     if count is None or count <= 0:
         raise LookingGlassError(f"line {n0}: expected the number of views (a positive integer), got '{head}'", path)
-    vectors = []
+    vectors, numbers = [], []
     for n, s in rows[1:]:
         tokens = s.replace(",", " ").split()
         try:
@@ -82,13 +83,32 @@ def read_paper_cameras(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray,
         if vec is None or len(vec) != 3 or not all(np.isfinite(vec)):
             raise LookingGlassError(f"line {n}: expected 3 numbers (origin, target or up of a view), got '{s}'", path)
         vectors.append(vec)
+        numbers.append(n)
     if len(vectors) != 3 * count:
         whole, rest = divmod(len(vectors), 3)
         got = f"{whole} views" + (f" and {rest} extra line{'s' if rest > 1 else ''}" if rest else "")
         raise LookingGlassError(f"line {n0} says {count} views but the file holds {got} "
                                 "(3 lines per view: origin, target, up)", path)
     arr = np.asarray(vectors, dtype=np.float64).reshape(count, 3, 3)
+    _check_paper_cameras(arr, np.asarray(numbers).reshape(count, 3), path)
     return arr[:, 0], arr[:, 1], arr[:, 2]
+
+
+def _check_paper_cameras(arr: np.ndarray, lines: np.ndarray, path: Path) -> None:
+    """Refuse degenerate cameras, naming the camera file and the line: arr (V, 3 [origin, target,
+    up], 3); lines (V, 3) their 1-based line numbers. The same tests as scene.json's cameras."""
+    for i, ((o, t, up), (n_o, n_t, n_up)) in enumerate(zip(arr, lines)):
+        scale = max(1.0, float(np.linalg.norm(o)), float(np.linalg.norm(t)))
+        dist = float(np.linalg.norm(t - o))
+        if dist <= 1e-9 * scale:
+            raise LookingGlassError(f"line {n_t}: degenerate camera {i + 1}, its target equals its origin (line {n_o})",
+                                    path)
+        up_len = float(np.linalg.norm(up))
+        if up_len <= 1e-12:
+            raise LookingGlassError(f"line {n_up}: degenerate camera {i + 1}, its up vector is zero", path)
+        if np.linalg.norm(np.cross((t - o) / dist, up / up_len)) < 1e-6:
+            raise LookingGlassError(f"line {n_up}: degenerate camera {i + 1}, its up vector is parallel to its viewing "
+                                    f"direction (lines {n_o}-{n_t}: origin, target)", path)
 
 
 def _find_camera_file(cams: Path) -> Path:
@@ -127,14 +147,6 @@ def _check_aspect(w_in: int, h_in: int, w_out: int, h_out: int, path: Path) -> N
             "and masks first", path)
 
 
-def _refuse_dangerous_out(out: Path, inputs: list[Path]) -> None:
-    o = out.resolve()
-    for p in inputs:
-        q = p.resolve()
-        if q == o or o in q.parents:
-            raise LookingGlassError(f"output folder would replace the input {p}", out)
-
-
 @dataclass(frozen=True)
 class _PaperView:
     """One masked view of the paper's layout: the mask's file stem, its photo and mask files, and
@@ -154,11 +166,7 @@ def _checked_size(envmap_scale: float, fov_x_deg: float, size) -> tuple[int, int
         raise LookingGlassError(f"envmap scale must be a positive number, got {envmap_scale}")
     if not (np.isfinite(fov_x_deg) and 0 < fov_x_deg < 180):
         raise LookingGlassError(f"fov_x must be in (0, 180) degrees, got {fov_x_deg}")
-    if size is None:
-        return None
-    if len(size) != 2 or any(int(s) != s or s <= 0 for s in size):
-        raise LookingGlassError(f"size must be two positive integers W H, got {size}")
-    return int(size[0]), int(size[1])
+    return None if size is None else check_image_size(size)
 
 
 def _check_envmap_and_out(envmap: Path, out: Path, inputs: list[Path], force: bool) -> None:
@@ -169,12 +177,7 @@ def _check_envmap_and_out(envmap: Path, out: Path, inputs: list[Path], force: bo
     if envmap.suffix.lower() not in ENVMAP_SUFFIXES:
         raise LookingGlassError(f"unsupported environment map type '{envmap.suffix}' (use .hdr, .exr, .png or .jpg)",
                                 envmap)
-    _refuse_dangerous_out(out, inputs)
-    if out.exists():
-        if not out.is_dir():
-            raise LookingGlassError("output exists and is not a folder", out)
-        if any(out.iterdir()) and not force:
-            raise LookingGlassError("output folder is not empty (pass --force, or force=True, to replace it)", out)
+    check_output_dir(out, force, inputs)
 
 
 def _photos_for(stems: list[str], mask_files: dict[str, list[Path]], photo_files: dict[str, list[Path]],
@@ -297,33 +300,23 @@ def import_paper(cams: Path, images: Path, masks: Path, envmap: Path, out: Path,
     views = _paper_views(cams, images, masks)
     read_envmap(envmap, envmap_scale)  # NaN/inf, shape and sign checks, naming the file
 
-    parent = out.resolve().parent
-    parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.importing-", dir=parent))
-    try:
-        os.chmod(tmp, usual_mode(directory=True))  # it becomes `out`: not mkdtemp's private 0o700
+    cam_file = _find_camera_file(cams)
+    with staged_dir(out, force, doing=f"import-paper into {out}", inputs=[cams, images, masks, envmap]) as tmp:
         _write_scene(tmp, views, envmap, envmap_scale, size, fov_x_deg)
-        load_capture(tmp)  # every scene-folder check, e.g. cameras that do not see the object
-        _move_into_place(tmp, out, force)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+        # every scene-folder check (e.g. cameras that do not see the object), its messages naming the
+        # user's files rather than the temporary folder: the cameras come from the camera file
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                load_capture(tmp)
+            except LookingGlassError as exc:
+                message = str(exc)
+                if exc.path == str(tmp / SCENE_FILE):
+                    message = f"{cam_file}: {message[len(exc.path) + 2:]}"
+                raise LookingGlassError(message.replace(str(tmp), str(out))) from None
+    for w in caught:
+        warnings.warn(type(w.message)(str(w.message).replace(str(tmp), str(out))), stacklevel=2)
     return out
-
-
-def _move_into_place(tmp: Path, out: Path, force: bool) -> None:
-    """Rename the finished folder `tmp` onto `out` (replacing a non-empty `out` only if force)."""
-    if out.exists():
-        if any(out.iterdir()):
-            if not force:
-                raise LookingGlassError("output folder is not empty (pass --force, or force=True, to replace it)", out)
-            backup = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=tmp.parent))
-            os.replace(out, backup / out.name)
-            os.replace(tmp, out)
-            shutil.rmtree(backup, ignore_errors=True)
-            return
-        out.rmdir()
-    os.replace(tmp, out)
 
 
 __all__ = ["import_paper", "read_paper_cameras", "natural_key", "PAPER_FOV_X_DEG", "SCENE_FILE"]

@@ -2,9 +2,9 @@
 
 Two layers:
 
-- `SceneSpec` / `ViewSpec`: the typed contents of `scene.json` (paths are relative strings,
-  cameras are look-at parameters in the capture's own world frame). `SceneSpec.from_json` checks
-  types and ranges and never touches the image files.
+- `SceneSpec` / `ViewSpec`: the typed contents of `scene.json` (paths are relative strings naming
+  files inside the folder, cameras are look-at parameters in the capture's own world frame).
+  `SceneSpec.from_json` checks types and ranges and never touches the image files.
 - `Capture`: everything loaded into memory and checked against each other by `load_capture`:
   images (V, H, W, 3) float32 linear, masks (V, H, W) bool, the environment map (He, 2He, 3)
   float32 linear times `envmap_scale`, and `Cameras` (float32).
@@ -269,8 +269,15 @@ def _vec3(x: Any, name: str, fail) -> Vec3:
 
 
 def _path_string(x: Any, name: str, fail) -> str:
+    """A file path of scene.json: a non-empty string naming a file inside the scene folder (not
+    absolute, no '..' leading out of it), so that the folder holds the whole capture."""
     if not isinstance(x, str) or not x.strip():
         raise fail(f"{name} must be a non-empty file path string, got {json.dumps(x)}")
+    norm = os.path.normpath(x.replace("\\", "/"))
+    if os.path.isabs(x) or x.startswith(("/", "\\")) or (x[:1].isalpha() and x[1:3] in (":/", ":\\")) \
+            or norm == ".." or norm.startswith("../"):
+        raise fail(f"{name} must be a path inside the scene folder, got {json.dumps(x)} (paths are relative to the "
+                   "folder; copy or link the file into it)")
     return x
 
 
