@@ -79,6 +79,8 @@ def evaluate(
     gt_mesh: Path = typer.Argument(..., help="Ground-truth mesh."),
     samples: int = typer.Option(20000, help="Points sampled on each surface."),
     seed: int = typer.Option(0, help="Sampling seed."),
+    report: bool = typer.Option(True, "--report/--no-report", help="When PRED_MESH is a reconstruct output's "
+                                "mesh.ply, rewrite that folder's report.html with the ground truth in it."),
 ) -> None:
     """Print CD (x1e4), Metro (x1e3), CDN-mean and CDN-med (degrees) as JSON, on the unit-sphere scale of GT."""
     from .metrics import MAX_SAMPLES, evaluate_mesh_files
@@ -86,6 +88,28 @@ def evaluate(
     if not 1 <= samples <= MAX_SAMPLES:
         raise LookingGlassError(f"--samples must be from 1 to {MAX_SAMPLES:,}, got {samples}")
     print(json.dumps(evaluate_mesh_files(pred_mesh, gt_mesh, samples=samples, seed=seed), indent=2))
+    if report and pred_mesh.name == "mesh.ply" and (pred_mesh.parent / "report.json").exists():
+        from .report import write_report
+
+        err = Console(stderr=True, highlight=False, soft_wrap=True)
+        try:
+            err.print(f"wrote {escape(str(write_report(pred_mesh.parent, ground_truth=gt_mesh)))} (with the ground truth)")
+        except LookingGlassError as exc:
+            err.print(f"[yellow]warning:[/yellow] report.html not rewritten: {escape(str(exc))}")
+
+
+@app.command()
+def view(
+    out: Path = typer.Argument(..., help="A reconstruct output folder (or a report.html)."),
+) -> None:
+    """Open OUT/report.html in the default browser and print its path (only print it where there is no
+    browser). An output folder from before reports existed gets its report.html first."""
+    from .report import open_report
+
+    path, opened = open_report(out)
+    print(path)
+    if not opened:
+        Console(stderr=True).print("no browser to open it here: open the file above in one")
 
 
 @app.command("import-paper")
@@ -173,7 +197,8 @@ def demo(
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
-    """Make a glass object, render it under a procedural environment, reconstruct and score it."""
+    """Make a glass object, render it under a procedural environment, reconstruct and score it; writes
+    OUT/result/report.html (and OUT/summary.png, its first screen, where Chromium is installed)."""
     import numpy as np
 
     import dataclasses
@@ -182,14 +207,15 @@ def demo(
     from .data.rigs import paper_rig
     from .data.shapes import random_shape
     from .data.synthetic import render_capture
+    import subprocess
+
     from .capture.images import check_image_size
-    from .capture.scene import load_capture
     from .fileio import staged_dir, write_atomic, write_json
     from .metrics import load_mesh, shape_metrics
     from .pipeline import reconstruct as run
     from .presets import preset as make_preset
     from .progress import Reporter
-    from .viz import overview
+    from .report.browser import find_chromium, screenshot
 
     if views not in (5, 10, 20):
         raise LookingGlassError(f"--views must be 5, 10 or 20, got {views}")
@@ -203,16 +229,21 @@ def demo(
             env = procedural_envmap(np.random.default_rng(seed), 256)
             cameras = paper_rig(views, seed, width=size[0], height=size[1])
             render_capture(shape, env, cameras, work / "scene", overwrite=True)
-        report = run(work / "scene", work / "result", config, force=True, reporter=reporter)
+        report = run(work / "scene", work / "result", config, force=True, reporter=reporter, ground_truth=shape)
         report["scene"] = str((out / "scene").resolve())  # where the scene will be, not the temporary folder
         write_json(work / "result" / "report.json", report)
         mesh = load_mesh(work / "result" / "mesh.ply")
         scores = shape_metrics(mesh, shape)
         write_json(work / "scores.json", {"mesh_from": report["mesh_from"], **scores})
-        capture = load_capture(work / "scene")
-        overview(work / "overview.png", capture.images[0], capture.masks[0], capture.cameras.select(0),
-                 {"ground truth": shape, "reconstruction": mesh})
-    reporter.info(f"overview {out / 'overview.png'} (photo | mask | ground-truth normals | reconstructed normals)")
+        summary = None
+        if find_chromium() is not None:  # the summary picture: the report's first screen
+            try:
+                summary = screenshot(work / "result" / "report.html", work / "summary.png")
+            except (OSError, RuntimeError, subprocess.TimeoutExpired) as exc:
+                reporter.warn(f"no summary.png: headless chromium failed ({exc})")
+    if summary is not None:
+        reporter.info(f"summary {out / 'summary.png'} (the report's first screen)")
+    reporter.info(f"report {out / 'result' / 'report.html'} (`lookingglass view {out / 'result'}` opens it)")
     reporter.info(f"mesh {out / 'result' / 'mesh.ply'} ({len(mesh.faces)} faces) vs ground truth: "
                   f"CD {scores['cd']:.2f} (x1e4), Metro {scores['metro']:.2f} (x1e3), "
                   f"CDN-mean {scores['cdn_mean']:.2f} deg, CDN-med {scores['cdn_med']:.2f} deg")

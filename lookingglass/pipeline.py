@@ -12,6 +12,7 @@ better of the surface and the refined mesh is kept). Outputs (capture frame, wri
   OUT/mesh.ply         the surface of the last stage that ran (the hull when only it ran)
   OUT/report.json      stages asked for and run, completed, per-stage seconds and peak memory, sizes,
                        versions, config
+  OUT/report.html      all of it for a person, one self-contained page (lookingglass/report/)
 OUT appears only when the run has finished (it is written in a temporary folder beside it): a failed
 or interrupted run leaves no partial result, and an earlier OUT replaced with --force stays whole
 until then.
@@ -30,7 +31,7 @@ import torch
 import trimesh
 
 from . import __version__
-from .capture.scene import SCENE_FILE, load_capture
+from .capture.scene import SCENE_FILE, Capture, load_capture
 from .config import STAGES, PipelineConfig, config_to_dict
 from .errors import LookingGlassError
 from .fileio import staged_dir, write_atomic, write_json
@@ -39,6 +40,7 @@ from .normals.stage import NormalStageResult, run_normal_stage, write_normal_vie
 from .points.stage import surface_from_normals
 from .progress import Reporter, peak_memory_mb
 from .refine import refine_surface
+from .report import write_report
 from .viz import silhouette_sheet
 from .weights import NormalWeights, load_normal_net, load_point_net, shipped_weights
 
@@ -163,7 +165,7 @@ def _refine(capture, hull: VisualHull, surface: trimesh.Trimesh, config: Pipelin
 
 
 def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = None, force: bool = False,
-                reporter: Reporter | None = None) -> dict:
+                reporter: Reporter | None = None, ground_truth: trimesh.Trimesh | None = None) -> dict:
     """Reconstruct the object in the scene folder `scene_dir` into the folder `out_dir`; returns the
     report dict (also OUT/report.json).
 
@@ -172,7 +174,8 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
     the run writes into a temporary folder beside `out_dir` (`fileio.staged_dir`) that becomes
     `out_dir` only when every stage asked for has finished (with `force` the old folder is replaced
     whole at that moment). A failed or interrupted run leaves `out_dir` as it was. report.json says
-    which stages were asked for and which ran, and `"completed": true`.
+    which stages were asked for and which ran, and `"completed": true`. ground_truth (capture
+    frame), when known, is shown and scored in OUT/report.html.
     """
     config = config or PipelineConfig()
     config = dataclasses.replace(config)  # validated (a config edited after it was made is checked here)
@@ -189,15 +192,16 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
     given = _given_weights(config)
     inputs = [scene_dir, *(p for p in (config.normals.weights, config.surface.point_weights) if p)]
     with staged_dir(out_dir, force, doing=f"reconstruct of {scene_dir}", inputs=inputs) as work:
-        report = _run(scene_dir, work, config, wanted, given, reporter)
+        report, capture = _run(scene_dir, work, config, wanted, given, reporter)
         report["total_seconds"] = round(time.perf_counter() - start, 3)
         write_json(work / "report.json", report)
+        write_report(work, capture=capture, report=report, ground_truth=ground_truth, reporter=reporter)
     return report
 
 
 def _run(scene_dir: Path, out_dir: Path, config: PipelineConfig, wanted: tuple[str, ...],
-         given: NormalWeights | None, reporter: Reporter) -> dict:
-    """The stages, writing into `out_dir` (the temporary folder); returns the report."""
+         given: NormalWeights | None, reporter: Reporter) -> tuple[dict, Capture]:
+    """The stages, writing into `out_dir` (the temporary folder); returns the report and the capture."""
     device = config.device
     first = len(reporter.stages)  # a reporter may have timed earlier work (the demo's, other scenes')
     with warnings.catch_warnings(record=True) as caught:
@@ -231,7 +235,7 @@ def _run(scene_dir: Path, out_dir: Path, config: PipelineConfig, wanted: tuple[s
     for message in messages:
         reporter.warn(message)
 
-    return {
+    report = {
         "completed": True,
         "scene": str(scene_dir.resolve()),
         "num_views": capture.num_views,
@@ -251,3 +255,4 @@ def _run(scene_dir: Path, out_dir: Path, config: PipelineConfig, wanted: tuple[s
         "versions": versions(),
         "config": config_to_dict(config),
     }
+    return report, capture

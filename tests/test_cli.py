@@ -44,6 +44,7 @@ def test_render_reconstruct_evaluate(rendered_scene):
     assert report["stages_run"] == expected and report["num_views"] == 10
     assert report["mesh_from"] == expected[-1]
     assert report["stages"][1]["seconds"] > 0 and report["config"]["hull"]["resolution"] == 128
+    assert (root / "out" / "report.html").stat().st_size > 100_000  # tests/test_report.py looks inside
     hull = trimesh.load(root / "out" / "visual_hull.ply", force="mesh")
     mesh = trimesh.load(root / "out" / "mesh.ply", force="mesh")
     gt = trimesh.load(root / "gt.ply", force="mesh")
@@ -179,6 +180,8 @@ def test_stop_after(rendered_scene, tmp_path):
     report = json.loads((tmp_path / "o" / "report.json").read_text())
     assert report["stages_run"] == ["visual_hull"] and report["mesh_from"] == "visual_hull"
     assert not (tmp_path / "o" / "normals").exists() and not (tmp_path / "o" / "points.ply").exists()
+    page = (tmp_path / "o" / "report.html").read_text()  # the hull alone: one mesh, no network normals
+    assert "visual hull normals" in page and "network normals" not in page and '"id":"visual_hull"' not in page
     proc = run("reconstruct", rendered_scene / "scene", "--out", tmp_path / "p", "--stop-after", "mesh", ok=False)
     assert proc.returncode == 2 and "--stop-after" in proc.stderr and "Traceback" not in proc.stderr
 
