@@ -9,4 +9,16 @@ quiet_pip() { .venv/bin/python -m pip install -q "$@" 2>&1 | { grep -v "^WARNING
 [ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
 .venv/bin/python -c "import torch" 2>/dev/null || quiet_pip "torch==2.13.0"
 quiet_pip -e ".[test]"
+# Headless Chromium for the browser test of report.html (tests/test_report.py; skipped without it)
+# and demo's summary.png: Debian's package, installed when apt-get can be run (as root or by sudo).
+if ! command -v chromium >/dev/null 2>&1 && ! command -v chromium-browser >/dev/null 2>&1 \
+        && command -v apt-get >/dev/null 2>&1; then
+    if [ "$(id -u)" = 0 ]; then SUDO=""; elif sudo -n true 2>/dev/null; then SUDO="sudo -n"; else SUDO=none; fi
+    if [ "$SUDO" != none ]; then
+        { $SUDO apt-get update -qq && $SUDO apt-get install -y -qq --no-install-recommends chromium >/dev/null; } \
+            || echo "could not install chromium: the report's browser test will be skipped"
+    else
+        echo "chromium is missing and apt-get needs root: the report's browser test will be skipped"
+    fi
+fi
 .venv/bin/python -c "import lookingglass, torch, mitsuba; print('lookingglass', lookingglass.__version__, '| torch', torch.__version__)"
