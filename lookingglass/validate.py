@@ -78,7 +78,9 @@ def _reconstructed(scene: Path, out: Path, config: PipelineConfig, reporter: Rep
             return
     except (OSError, ValueError):
         pass
-    reconstruct(scene, out, config, force=True, reporter=reporter)
+    truth = scene.parent / "ground_truth.ply"  # shown and scored in the run's report.html
+    reconstruct(scene, out, config, force=True, reporter=reporter,
+                ground_truth=load_mesh(truth) if truth.exists() else None)
     write_json(stamp, key)
 
 

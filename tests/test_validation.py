@@ -57,6 +57,8 @@ def test_reconstruct_scored_against_the_hull(tmp_path):
     assert 0 < record["n1_median_hull"] < 20 and 0 < record["n1_median_pred"] < 45
     assert record["render_error_hull"] > 0 and record["render_error_pred"] > 0
     assert result["families"]["blob"]["scenes"] == 1 and "pebble" in markdown_table(result)
+    page = (tmp_path / "out" / "pebble" / "report.html").read_text()  # with its ground truth
+    assert "ground truth normals" in page and "network normals" in page and "CDN-mean" in page
     saved = json.loads((tmp_path / "out" / "validation.json").read_text())
     assert saved["scenes"][0]["hull"] == record["hull"]
     stamp = (tmp_path / "out" / "pebble" / "report.json").stat().st_mtime_ns
