@@ -86,7 +86,7 @@ def test_report_is_complete_and_self_contained(small_run):
     assert "ground truth normals" not in without_gt and '"ground_truth"' not in without_gt
 
 
-def test_report_in_headless_chromium(small_run, tmp_path):
+def test_report_in_headless_chromium(small_run, tmp_path, record_property):
     """The page loads in Chromium without a console error or a request, and its 3D view draws:
     the canvas's screenshot is not blank. A copy of the page with an error and a request in it is
     caught, so the check is not blind."""
@@ -100,6 +100,7 @@ def test_report_in_headless_chromium(small_run, tmp_path):
     load = load_page(html, binary)
     for name, png in (("first_screen", load.screen), ("canvas", load.canvas), ("view", load.view)):
         (tmp_path / f"{name}.png").write_bytes(png)
+    record_property("screenshots", str(tmp_path))
     print(f"\nthe report in headless chromium: {tmp_path}/first_screen.png (the first screen), canvas.png (the "
           "WebGL drawing), view.png (the 3D view as shown)")
     assert load.console == [] and load.log.get("errors") == [], (load.console, load.log)
