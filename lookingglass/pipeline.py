@@ -39,7 +39,8 @@ from .hull import VisualHull, carve_visual_hull
 from .normals.stage import NormalStageResult, run_normal_stage, write_normal_views
 from .points.stage import surface_from_normals
 from .progress import Reporter, peak_memory_mb
-from .refine import refine_surface
+from .refine import RefineResult, refine_surface
+from .render.compare import Rerendering
 from .report import write_report
 from .viz import silhouette_sheet
 from .weights import NormalWeights, load_normal_net, load_point_net, shipped_weights
@@ -151,8 +152,9 @@ def _surface(hull: VisualHull, normals: NormalStageResult, config: PipelineConfi
 
 
 def _refine(capture, hull: VisualHull, surface: trimesh.Trimesh, config: PipelineConfig, out_dir: Path,
-            reporter: Reporter) -> trimesh.Trimesh:
-    """The refine stage: writes OUT/surface.ply (its input) and OUT/refine.png; returns the kept mesh."""
+            reporter: Reporter) -> RefineResult:
+    """The refine stage: writes OUT/surface.ply (its input) and OUT/refine.png; returns its result
+    (the kept mesh, its re-rendering)."""
     with reporter.stage("refine", "refine (silhouettes + smoothness)") as rec:
         write_mesh(out_dir / "surface.ply", surface)
         result = refine_surface(surface, hull, capture.masks, capture.cameras, config.refine, capture=capture)
@@ -161,7 +163,7 @@ def _refine(capture, hull: VisualHull, surface: trimesh.Trimesh, config: Pipelin
                          result.rerendering)
         rec.update(result.report, view_coverage=[round(float(c), 4) for c in hull.view_coverage],
                    mesh=mesh_summary(result.mesh))
-    return result.mesh
+    return result
 
 
 def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = None, force: bool = False,
@@ -192,16 +194,18 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
     given = _given_weights(config)
     inputs = [scene_dir, *(p for p in (config.normals.weights, config.surface.point_weights) if p)]
     with staged_dir(out_dir, force, doing=f"reconstruct of {scene_dir}", inputs=inputs) as work:
-        report, capture = _run(scene_dir, work, config, wanted, given, reporter)
+        report, capture, rendered = _run(scene_dir, work, config, wanted, given, reporter)
         report["total_seconds"] = round(time.perf_counter() - start, 3)
         write_json(work / "report.json", report)
-        write_report(work, capture=capture, report=report, ground_truth=ground_truth, reporter=reporter)
+        write_report(work, capture=capture, report=report, ground_truth=ground_truth, rerendering=rendered,
+                     reporter=reporter)
     return report
 
 
 def _run(scene_dir: Path, out_dir: Path, config: PipelineConfig, wanted: tuple[str, ...],
-         given: NormalWeights | None, reporter: Reporter) -> tuple[dict, Capture]:
-    """The stages, writing into `out_dir` (the temporary folder); returns the report and the capture."""
+         given: NormalWeights | None, reporter: Reporter) -> tuple[dict, Capture, Rerendering | None]:
+    """The stages, writing into `out_dir` (the temporary folder); returns the report, the capture and
+    the kept mesh's re-rendering when the refine stage made one."""
     device = config.device
     first = len(reporter.stages)  # a reporter may have timed earlier work (the demo's, other scenes')
     with warnings.catch_warnings(record=True) as caught:
@@ -219,7 +223,7 @@ def _run(scene_dir: Path, out_dir: Path, config: PipelineConfig, wanted: tuple[s
                        timings={k: round(float(v), 3) for k, v in hull.timings.items()})
 
         best, best_stage = hull.mesh, "visual_hull"
-        normals = None
+        normals = rendered = None
         if "normals" in wanted and weights is None:
             reporter.warn("no trained normal-network weights ship with this build: stopping after the visual hull")
         elif "normals" in wanted:
@@ -228,8 +232,8 @@ def _run(scene_dir: Path, out_dir: Path, config: PipelineConfig, wanted: tuple[s
             best = _surface(hull, normals, config, trained_views, device, out_dir, reporter)
             best_stage = "surface"
             if "refine" in wanted:
-                best = _refine(capture, hull, best, config, out_dir, reporter)
-                best_stage = "refine"
+                refined = _refine(capture, hull, best, config, out_dir, reporter)
+                best, best_stage, rendered = refined.mesh, "refine", refined.rerendering
         write_mesh(out_dir / "mesh.ply", best)
     messages = [str(w.message) for w in caught]
     for message in messages:
@@ -255,4 +259,4 @@ def _run(scene_dir: Path, out_dir: Path, config: PipelineConfig, wanted: tuple[s
         "versions": versions(),
         "config": config_to_dict(config),
     }
-    return report, capture
+    return report, capture, rendered

@@ -11,11 +11,13 @@ the system (Debian: `apt-get install chromium`; scripts/setup.sh installs it whe
 from __future__ import annotations
 
 import base64
+import fcntl
 import json
 import os
 import select
 import shutil
 import subprocess
+import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -34,6 +36,13 @@ def find_chromium() -> str | None:
     return next((path for path in map(shutil.which, NAMES) if path), None)
 
 
+def _high_fd(fd: int, lowest: int = 10) -> int:
+    """`fd` moved to a descriptor number >= `lowest` (the original closed)."""
+    moved = fcntl.fcntl(fd, fcntl.F_DUPFD, lowest)
+    os.close(fd)
+    return moved
+
+
 class Chromium:
     """A headless Chromium process and its DevTools connection (a context manager).
 
@@ -47,14 +56,19 @@ class Chromium:
         self._profile = tempfile.TemporaryDirectory(prefix="lookingglass-chromium-")
         to_browser, self._write = os.pipe()
         self._read, from_browser = os.pipe()
-        # the browser reads commands on its fd 3 and writes replies on fd 4
+        # the browser reads commands on its fd 3 and writes replies on fd 4: a Python trampoline puts
+        # the pipe's ends there (from fds of 10 and up, so neither lands on the other) and execs it
+        to_browser, from_browser = (_high_fd(fd) for fd in (to_browser, from_browser))
         command = [binary, "--headless", "--no-sandbox", "--remote-debugging-pipe", "--use-angle=swiftshader",
                    "--enable-unsafe-swiftshader", "--hide-scrollbars", "--no-first-run", "--no-default-browser-check",
                    "--disable-extensions", "--disable-sync", "--disable-background-networking",
                    "--disable-component-update", f"--user-data-dir={self._profile.name}", "about:blank"]
-        self.process = subprocess.Popen(["sh", "-c", f'exec "$0" "$@" 3<&{to_browser} 4>&{from_browser}', *command],
+        self._log = open(Path(self._profile.name) / "chromium.log", "w+b")  # noqa: SIM115 - closed in close()
+        trampoline = "import os, sys; os.dup2(int(sys.argv[1]), 3); os.dup2(int(sys.argv[2]), 4); " \
+                     "os.execvp(sys.argv[3], sys.argv[3:])"
+        self.process = subprocess.Popen([sys.executable, "-c", trampoline, str(to_browser), str(from_browser), *command],
                                         pass_fds=(to_browser, from_browser), stdin=subprocess.DEVNULL,
-                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                        stdout=self._log, stderr=subprocess.STDOUT)
         os.close(to_browser)
         os.close(from_browser)
         self._buffer = b""
@@ -83,7 +97,14 @@ class Chromium:
                 os.close(fd)
             except OSError:
                 pass
+        self._log.close()
         self._profile.cleanup()
+
+    def log_tail(self, lines: int = 15) -> str:
+        """The end of Chromium's own output (its errors), for a failure's message."""
+        self._log.flush()
+        self._log.seek(0)
+        return "\n".join(self._log.read().decode(errors="replace").splitlines()[-lines:])
 
     def call(self, method: str, params: dict | None = None, session: str | None = None,
              timeout: float = 60) -> dict:
@@ -107,11 +128,11 @@ class Chromium:
             if left <= 0:
                 raise TimeoutError(f"chromium did not answer {method} in {timeout} s")
             if self.process.poll() is not None:
-                raise RuntimeError(f"chromium exited ({self.process.returncode}) during {method}")
+                raise RuntimeError(f"chromium exited ({self.process.returncode}) during {method}:\n{self.log_tail()}")
             if select.select([self._read], [], [], min(left, 0.5))[0]:
                 chunk = os.read(self._read, 1 << 20)
                 if not chunk:
-                    raise RuntimeError(f"chromium closed its DevTools pipe during {method}")
+                    raise RuntimeError(f"chromium closed its DevTools pipe during {method}:\n{self.log_tail()}")
                 self._buffer += chunk
 
 

@@ -56,13 +56,15 @@ class ReportData:
 
 
 def write_report(out_dir: str | Path, *, capture=None, report: dict | None = None, ground_truth=None,
-                 metrics: dict | None = None, width: int = VIEW_WIDTH, reporter=None) -> Path:
+                 metrics: dict | None = None, rerendering=None, width: int = VIEW_WIDTH, reporter=None) -> Path:
     """Write OUT/report.html (atomically) for the `reconstruct` output folder `out_dir`; returns its path.
 
     capture: the loaded capture (default: loaded from report.json's "scene"); report: report.json's
     dict (default: read from the folder); ground_truth: a trimesh or a mesh file in the capture's
     frame, or None; metrics: the result's `shape_metrics` against it when already computed;
-    width: the re-rendering width in pixels; reporter: a `progress.Reporter` to say it is done.
+    rerendering: the result's `render.compare.rerender` when already made (the refine stage makes
+    it), else it is made `width` pixels wide (the hull is re-rendered at the same width);
+    reporter: a `progress.Reporter` to say it is done.
     Raises LookingGlassError naming a missing or unreadable file.
     """
     from ..capture.scene import load_capture
@@ -84,7 +86,7 @@ def write_report(out_dir: str | Path, *, capture=None, report: dict | None = Non
     hull = mesh if report.get("mesh_from") == "visual_hull" else load_mesh(out_dir / "visual_hull.ply")
     if ground_truth is not None and not isinstance(ground_truth, trimesh.Trimesh):
         ground_truth = load_mesh(ground_truth)
-    data = gather(out_dir, report, capture, mesh, hull, ground_truth, metrics, width)
+    data = gather(out_dir, report, capture, mesh, hull, ground_truth, metrics, width, rerendering)
     data.seconds = time.perf_counter() - start
     from .page import render_page
 
@@ -97,13 +99,15 @@ def write_report(out_dir: str | Path, *, capture=None, report: dict | None = Non
 
 
 def gather(out_dir: Path, report: dict, capture, mesh: trimesh.Trimesh, hull: trimesh.Trimesh,
-           ground_truth: trimesh.Trimesh | None, metrics: dict | None, width: int) -> ReportData:
+           ground_truth: trimesh.Trimesh | None, metrics: dict | None, width: int, rendered=None) -> ReportData:
     """The report's content: re-renderings, per-view pictures, metrics and the 3D scene."""
     from ..metrics import normalization_transform, shape_metrics
     from ..render.compare import rerender
 
     same = hull is mesh
-    rendered = rerender(mesh, capture, width=width)
+    if rendered is None or len(rendered.error) != capture.num_views:
+        rendered = rerender(mesh, capture, width=width)
+    width = rendered.photos.shape[2]
     rendered_hull = None if same else rerender(hull, capture, width=width)
     if ground_truth is not None:
         metrics = {"hull": shape_metrics(hull, ground_truth),

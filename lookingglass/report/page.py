@@ -52,7 +52,7 @@ def bar_chart(rows: list[tuple[str, list[float | None]]], series: list[tuple[str
     height = legend_h + group_h * len(rows) + 4
     top = max((v for _, vals in rows for v in vals if v is not None), default=1.0) or 1.0
     parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" role="img">']
-    if legend_h:
+    if len(series) > 1:
         x = label_w
         for name, colour in series:
             parts.append(f'<rect x="{x}" y="3" width="10" height="10" fill="{colour}"/>'
@@ -165,6 +165,13 @@ def numbers_section(data: ReportData) -> str:
                       f'mean squared error over the mask): hull\'s normals <b>{normals["render_error_vh"]:.4f}</b>, '
                       f'the network\'s <b>{normals["render_error"]:.4f}</b> '
                       f'({normals["render_error"] / max(normals["render_error_vh"], 1e-12):.2f} x).</p>')
+    refine = _stage(r, "refine")
+    if "rerender_error" in refine:
+        before, after = refine["rerender_error"]
+        width = r.get("config", {}).get("refine", {}).get("rerender_width", "?")
+        errors.append(f'<p>Refine stage (re-rendered at {width} px wide, weighted over the views): the surface '
+                      f'stage\'s mesh <b>{before:.4f}</b>, the refined one <b>{after:.4f}</b>; kept: the '
+                      f'{"refined mesh" if refine.get("kept") == "refined" else "surface stage" + chr(39) + "s mesh"}.</p>')
     series = [("visual hull", HULL), ("result", MESH)] if any(v.error_hull is not None for v in data.views) \
         else [("result", MESH)]
     rows = [(f"view {v.index:02d}", ([v.error_hull] if len(series) == 2 else []) + [v.error]) for v in data.views]
