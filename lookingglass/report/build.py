@@ -18,7 +18,6 @@ from ..errors import LookingGlassError
 from ..fileio import write_atomic
 
 REPORT_NAME = "report.html"
-VIEW_WIDTH = 200  # re-rendering width: a 10-view capture re-renders in ~1.5 s on one core
 PANEL = 192  # pixels of one per-view picture (a square around the object)
 # Faces each mesh keeps in the 3D view; larger meshes are decimated for display only (a 10-view
 # report then stays near 4 MB whatever the meshes' size).
@@ -50,25 +49,27 @@ class ReportData:
     views: list[ViewPanels]
     scene3d: dict
     metrics: dict | None = None
-    rerender_width: int = VIEW_WIDTH
+    rerender_width: int = 0
     notes: list[str] = field(default_factory=list)
     seconds: float = 0.0
 
 
 def write_report(out_dir: str | Path, *, capture=None, report: dict | None = None, ground_truth=None,
-                 metrics: dict | None = None, rerendering=None, width: int = VIEW_WIDTH, reporter=None) -> Path:
+                 metrics: dict | None = None, rerendering=None, width: int | None = None, reporter=None) -> Path:
     """Write OUT/report.html (atomically) for the `reconstruct` output folder `out_dir`; returns its path.
 
     capture: the loaded capture (default: loaded from report.json's "scene"); report: report.json's
     dict (default: read from the folder); ground_truth: a trimesh or a mesh file in the capture's
     frame, or None; metrics: the result's `shape_metrics` against it when already computed;
     rerendering: the result's `render.compare.rerender` when already made (the refine stage makes
-    it), else it is made `width` pixels wide (the hull is re-rendered at the same width);
+    it), else it is made `width` pixels wide (default: the refine stage's width, so a report written
+    again shows the same errors; the hull is re-rendered at the same width);
     reporter: a `progress.Reporter` to say it is done.
     Raises LookingGlassError naming a missing or unreadable file.
     """
     from ..capture.scene import load_capture
     from ..metrics import load_mesh
+    from ..render.compare import RERENDER_WIDTH
 
     start = time.perf_counter()
     out_dir = Path(out_dir)
@@ -84,6 +85,7 @@ def write_report(out_dir: str | Path, *, capture=None, report: dict | None = Non
         capture = load_capture(report["scene"])
     mesh = load_mesh(out_dir / "mesh.ply")
     hull = mesh if report.get("mesh_from") == "visual_hull" else load_mesh(out_dir / "visual_hull.ply")
+    width = width or report.get("config", {}).get("refine", {}).get("rerender_width") or RERENDER_WIDTH
     if ground_truth is not None and not isinstance(ground_truth, trimesh.Trimesh):
         ground_truth = load_mesh(ground_truth)
     data = gather(out_dir, report, capture, mesh, hull, ground_truth, metrics, width, rerendering)
