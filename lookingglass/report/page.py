@@ -199,9 +199,12 @@ def config_section(report: dict) -> str:
 
 def scene_name(report: dict) -> str:
     """The capture's folder name (its parent's for a folder named "scene", as demo and
-    generate-validation make them)."""
+    generate-validation make them; a folder still being written, `fileio.staged_dir`'s
+    ".NAME.partial-XXXX" as demo's scene is while it runs, by the NAME it will have)."""
     scene = Path(report.get("scene", "scene"))
-    return (scene.parent.name if scene.name == "scene" and scene.parent.name else scene.name) or "?"
+    name = (scene.parent.name if scene.name == "scene" and scene.parent.name else scene.name) or "?"
+    staged = re.fullmatch(r"\.(.+)\.partial-[^.]+", name)
+    return staged.group(1) if staged else name
 
 
 def render_page(data: ReportData) -> str:
@@ -212,7 +215,7 @@ def render_page(data: ReportData) -> str:
         "version": escape(__version__),
         "title": escape(f"lookingglass · {name}"),
         "heading": escape(f"lookingglass · {name}"),
-        "subtitle": escape(f"{r.get('num_views')} views · {time.strftime('%Y-%m-%d %H:%M')}{gt} · {data.out_dir.resolve()}"),
+        "subtitle": escape(f"{r.get('num_views')} views · {time.strftime('%Y-%m-%d %H:%M')}{gt}"),
         "side": side_panel(data),
         "views_intro": escape("Per view, cropped around the object: the photo with the mask's outline, the result "
                               "re-rendered as glass under the capture's environment map (the mask outlined), then the "
