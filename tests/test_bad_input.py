@@ -335,7 +335,7 @@ def test_force_replaces_the_old_result_whole(base, tmp_path, capfd):
     code, err = run_cli(capfd, "reconstruct", base / "scene", "--out", out, "--force", "--quiet",
                         "--stop-after", "visual_hull", "--hull-resolution", 32)
     assert code == 0, err
-    assert sorted(p.name for p in out.iterdir()) == ["mesh.ply", "report.json", "visual_hull.ply"]
+    assert sorted(p.name for p in out.iterdir()) == ["mesh.ply", "report.html", "report.json", "visual_hull.ply"]
     report = json.loads((out / "report.json").read_text())
     assert report["completed"] is True and report["stages_run"] == ["visual_hull"]
     assert report["stages_requested"] == ["visual_hull"] and report["mesh_from"] == "visual_hull"
