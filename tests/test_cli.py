@@ -2,35 +2,21 @@
 
 import json
 import subprocess
-import sys
 
 import numpy as np
 import pytest
 import trimesh
 
-from lookingglass.capture.images import write_image
-from lookingglass.data.envmaps import procedural_envmap
 from lookingglass.metrics import shape_metrics
 from lookingglass.weights import shipped_weights
 
-CLI = [sys.executable, "-m", "lookingglass.cli"]
-
-
-def run(*args, ok=True):
-    proc = subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=300)
-    if ok:
-        assert proc.returncode == 0, proc.stderr
-    return proc
+from cli_helpers import CLI, render_torus_scene, run
 
 
 @pytest.fixture(scope="module")
 def rendered_scene(tmp_path_factory):
     root = tmp_path_factory.mktemp("cli")
-    mesh = trimesh.creation.torus(major_radius=0.6, minor_radius=0.25)
-    mesh.apply_transform(trimesh.transformations.rotation_matrix(0.6, [1, 0, 0.3]))
-    mesh.export(root / "gt.ply")
-    write_image(root / "env.hdr", procedural_envmap(np.random.default_rng(0), 64))
-    run("render", root / "gt.ply", "--envmap", root / "env.hdr", "--rig", 10, "--size", 120, 90, "--out", root / "scene")
+    render_torus_scene(root)
     return root
 
 

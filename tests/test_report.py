@@ -5,30 +5,21 @@ import io
 import json
 import os
 import re
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 import trimesh
 
-from lookingglass.capture.images import write_image
-from lookingglass.data.envmaps import procedural_envmap
 from lookingglass.report import open_report
 from lookingglass.report.browser import find_chromium, load_page
 from lookingglass.report.build import COLORMAP, colormap, display_mesh, nice_ceiling
 from lookingglass.weights import shipped_weights
 
-CLI = [sys.executable, "-m", "lookingglass.cli"]
+from cli_helpers import render_torus_scene, run
+
 NO_CHROMIUM = ("headless Chromium is not installed (Debian's `chromium` package; scripts/setup.sh installs it "
                "when run as root or with sudo; LOOKINGGLASS_CHROMIUM names another binary)")
 
-
-def run(*args, ok=True, **kwargs):
-    proc = subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=300, **kwargs)
-    if ok:
-        assert proc.returncode == 0, proc.stderr
-    return proc
 
 
 @pytest.fixture(scope="module")
@@ -36,11 +27,7 @@ def small_run(tmp_path_factory):
     """A 10-view 120x90 capture of a tilted torus, reconstructed (few latent steps) and evaluated
     against its ground truth, which rewrites the report with the ground truth in it."""
     root = tmp_path_factory.mktemp("report")
-    mesh = trimesh.creation.torus(major_radius=0.6, minor_radius=0.25)
-    mesh.apply_transform(trimesh.transformations.rotation_matrix(0.6, [1, 0, 0.3]))
-    mesh.export(root / "gt.ply")
-    write_image(root / "env.hdr", procedural_envmap(np.random.default_rng(0), 64))
-    run("render", root / "gt.ply", "--envmap", root / "env.hdr", "--rig", 10, "--size", 120, 90, "--out", root / "scene")
+    render_torus_scene(root)
     run("reconstruct", root / "scene", "--out", root / "out", "--quiet", "--normals.latent.iterations-n2", 2,
         "--normals.latent.iterations-both", 2)
     first = (root / "out" / "report.html").read_text()
