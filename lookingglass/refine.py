@@ -545,7 +545,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         "silhouette_iou_mean": [round(mean_w(iou_in), 4), round(mean_w(iou_out), 4)],
         "view_weights": [round(float(w), 3) for w in weights],
         **({"rerender_error": [round(mean_w(rerendered[k].error), 4) for k in ("input", "refined")],
-            "rerender_error_views_after": [round(float(e), 4) for e in rerendered["refined"].error]}
+            "rerender_error_views": {k: [round(float(e), 5) for e in r.error] for k, r in rerendered.items()}}
            if rerendered else {}),
         **({"photometric_loss": [round(v, 4) for v in photo_losses]} if photo_losses else {}),
         "down_weighted_views": [int(v) for v in low],

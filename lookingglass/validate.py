@@ -28,7 +28,7 @@ from .fileio import sha256_file, write_json
 from .metrics import load_mesh, normal_angle_errors, shape_metrics
 from .pipeline import reconstruct
 from .progress import Reporter
-from .render.compare import rerender
+from .render.compare import RERENDER_WIDTH, rerender
 from .render.tracer import trace_two_bounce
 from .weights import WEIGHTS_DIR
 
@@ -123,11 +123,16 @@ def evaluate_validation_set(root, out, config: PipelineConfig | None = None, nam
         capture = load_capture(scene)
         with torch.inference_mode():
             record.update(normal_errors(out / name, capture, gt, hull))
-        meshes = {"hull": hull, "mesh": load_mesh(out / name / "mesh.ply")}
-        if "surface" in record:
-            meshes["surface"] = load_mesh(out / name / "surface.ply")
-        for kind, mesh in meshes.items():  # how well each explains the photos (render/compare.py)
-            record[kind]["rerender"] = rerender(mesh, capture).mean_error
+        # how well each mesh explains the photos (render/compare.py); the refine stage has already
+        # re-rendered its input (the surface) and its result, at the same seed (and, by default, width)
+        views = (refine or {}).get("rerender_error_views")
+        if views is not None and config.refine.rerender_width == RERENDER_WIDTH:
+            record["surface"]["rerender"] = float(np.mean(views["input"]))
+            record["mesh"]["rerender"] = float(np.mean(views["refined" if refine["kept"] == "refined" else "input"]))
+        else:
+            for kind in ("surface", "mesh") if "surface" in record else ("mesh",):
+                record[kind]["rerender"] = rerender(load_mesh(out / name / f"{kind}.ply"), capture).mean_error
+        record["hull"]["rerender"] = rerender(hull, capture).mean_error
         records.append(record)
     result = {"config": config_to_dict(config), "scenes": records, "families": family_means(records)}
     write_json(out / "validation.json", result)
