@@ -72,7 +72,7 @@ from .normals.render_layer import comparable, render_layer
 from .physics.camera import Cameras
 from .physics.environment import EnvironmentMap
 from .render.compare import RERENDER_WIDTH, Rerendering, photos_at, rerender
-from .render.differentiable import mesh_two_bounce
+from .render.differentiable import mesh_two_bounce, vertex_normals_t
 from .render.raycast import RayCaster, object_masks
 
 
@@ -165,15 +165,6 @@ def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
 
 
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(N, 3) unit area-weighted vertex normals."""
-    fn = face_normals(vertices, faces)
-    vn = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(vn, faces[:, k], fn)
-    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
-
-
 def _unfolded(start: np.ndarray, previous: np.ndarray, proposed: np.ndarray, faces: np.ndarray,
               tries: int = 8) -> np.ndarray:
     """`proposed` vertices with the step undone at the vertices of faces it folds over (normal
@@ -237,7 +228,7 @@ def rim_vertices(vertices: np.ndarray, faces: np.ndarray, cams: Cameras, candida
     their view: the ray through the point one pixel outside the vertex (along its normal, in the
     plane perpendicular to the ray) misses the mesh. Inner folds and occluded contour vertices fail."""
     caster = RayCaster(trimesh.Trimesh(vertices, faces, process=False))
-    normals = vertex_normals(vertices, faces)
+    normals = vertex_normals_t(torch.as_tensor(vertices), torch.as_tensor(faces)).numpy()
     origins = cams.origin.double().numpy()
     pitch = 2 * cams.tan_half_fov_x.double().numpy() / cams.width  # pixel size per unit depth
     forward = cams.forward.double().numpy()
