@@ -135,6 +135,35 @@ def import_paper(
     Console(stderr=True).print(f"wrote {path}")
 
 
+def _parse_up(up: Optional[tuple[float, float, float]]):
+    return None if up is None else tuple(float(v) for v in up)
+
+
+@app.command("import-colmap")
+def import_colmap(
+    model: Path = typer.Option(..., "--model", help="COLMAP model folder (text or binary; also its model/ or "
+                                                    "sparse/0/), e.g. from `lookingglass sfm`."),
+    images: Path = typer.Option(..., "--images", help="Folder of photos (photos without a mask are skipped)."),
+    masks: Path = typer.Option(..., "--masks", help="Folder of masks (grey, or a PNG's alpha), matched to photos "
+                                                    "by file stem."),
+    envmap: Path = typer.Option(..., "--envmap", help="Environment map in the model's frame (e.g. from "
+                                                      "`envmap-from-ball`)."),
+    out: Path = typer.Option(..., "--out", help="Scene folder to write."),
+    ior: float = typer.Option(IOR_GLASS, help="Index of refraction of the object."),
+    size: Optional[tuple[int, int]] = typer.Option(None, "--size", help="Resize images and masks to W H."),
+    up: Optional[tuple[float, float, float]] = typer.Option(None, "--up", help="Up direction x y z in the model's "
+                                                            "frame (default: the cameras' mean up)."),
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
+) -> None:
+    """Turn a COLMAP model, its photos, the object's masks and an environment map into a scene folder:
+    photos and masks undistorted to pinhole cameras, the object centred and upright, the map rotated
+    along."""
+    from .capture.colmap import import_colmap as run
+
+    path = run(model, images, masks, envmap, out, ior=ior, size=size, up=_parse_up(up), force=force)
+    Console(stderr=True).print(f"wrote {path}")
+
+
 @app.command()
 def render(
     mesh: Path = typer.Argument(..., help="Closed glass mesh (world frame)."),

@@ -18,12 +18,13 @@ command line can list the names cheaply.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Callable
 
 from .errors import ConfigError
 
 if TYPE_CHECKING:
+    from .capture.config import CaptureConfig
     from .config import PipelineConfig
     from .data.dataset import DatasetConfig
     from .normals.train import TrainConfig
@@ -35,13 +36,22 @@ DEFAULT_PRESET = "cpu"
 @dataclass(frozen=True)
 class Preset:
     """Every config of one named preset. pipeline: `reconstruct`; dataset: `generate` (and the
-    image size the networks are trained at); normal_training, point_training: the trainers'."""
+    image size the networks are trained at); normal_training, point_training: the trainers';
+    capture: the real-capture commands' (`sfm`, `envmap-from-ball`, `capture`), the same in every
+    preset."""
 
     name: str
     pipeline: PipelineConfig
     dataset: DatasetConfig
     normal_training: TrainConfig
     point_training: PointTrainConfig
+    capture: CaptureConfig = field(default_factory=lambda: _capture_config())
+
+
+def _capture_config() -> CaptureConfig:
+    from .capture.config import CaptureConfig
+
+    return CaptureConfig()
 
 
 def _cpu() -> Preset:

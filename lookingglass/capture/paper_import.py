@@ -34,7 +34,7 @@ from ..physics.constants import PAPER_CAPTURE_FOV_X_DEG as PAPER_FOV_X_DEG
 from ..fileio import check_output_dir, staged_dir
 from .images import (HDR_SUFFIXES, check_image_size, read_envmap, read_image, read_mask, read_raw, write_image,
                      write_mask)
-from .scene import SCENE_FILE, SceneSpec, ViewSpec, load_capture, save_scene
+from .scene import SCENE_FILE, SceneSpec, ViewSpec, check_staged_scene, save_scene
 
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
 MASK_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -206,20 +206,27 @@ def _photos_for(stems: list[str], mask_files: dict[str, list[Path]], photo_files
     return photos
 
 
+def _masks_by_stem(masks: Path) -> dict[str, list[Path]]:
+    """The mask files of folder `masks` by stem (as `_list_files`); LookingGlassError for a folder
+    without masks or two masks with one stem."""
+    mask_files = _list_files(masks, MASK_SUFFIXES, "mask")
+    for stem, paths in mask_files.items():
+        if len(paths) > 1:
+            names = ", ".join(p.name for p in sorted(paths))
+            raise LookingGlassError(f"several masks share the stem '{stem}': {names}", masks)
+    if not mask_files:
+        raise LookingGlassError(f"no masks ({'/'.join(MASK_SUFFIXES)}) in this folder", masks)
+    return mask_files
+
+
 def _paper_views(cams: Path, images: Path, masks: Path) -> list[_PaperView]:
     """The masked views, in the natural order of the mask stems, paired with the camera file's
     views (in that order) and with their photos. Raises LookingGlassError naming the file at fault."""
     cam_file = _find_camera_file(cams)
     origin, target, up = read_paper_cameras(cam_file)
-    mask_files = _list_files(masks, MASK_SUFFIXES, "mask")
+    mask_files = _masks_by_stem(masks)
     photo_files = _list_files(images, PHOTO_SUFFIXES, "image")
-    for stem, paths in mask_files.items():
-        if len(paths) > 1:
-            names = ", ".join(p.name for p in sorted(paths))
-            raise LookingGlassError(f"several masks share the stem '{stem}': {names}", masks)
     stems = sorted(mask_files, key=natural_key)
-    if not stems:
-        raise LookingGlassError(f"no masks ({'/'.join(MASK_SUFFIXES)}) in this folder", masks)
     if len(stems) != len(origin):
         raise LookingGlassError(f"{len(stems)} masks in {masks} but the camera file lists {len(origin)} views "
                                 "(it must list exactly the masked views)", cam_file)
@@ -303,19 +310,9 @@ def import_paper(cams: Path, images: Path, masks: Path, envmap: Path, out: Path,
     cam_file = _find_camera_file(cams)
     with staged_dir(out, force, doing=f"import-paper into {out}", inputs=[cams, images, masks, envmap]) as tmp:
         _write_scene(tmp, views, envmap, envmap_scale, size, fov_x_deg)
-        # every scene-folder check (e.g. cameras that do not see the object), its messages naming the
-        # user's files rather than the temporary folder: the cameras come from the camera file
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            try:
-                load_capture(tmp)
-            except LookingGlassError as exc:
-                message = str(exc)
-                if exc.path == str(tmp / SCENE_FILE):
-                    message = f"{cam_file}: {message[len(exc.path) + 2:]}"
-                raise LookingGlassError(message.replace(str(tmp), str(out))) from None
+        caught = check_staged_scene(tmp, out, cam_file)  # the cameras come from the camera file
     for w in caught:
-        warnings.warn(type(w.message)(str(w.message).replace(str(tmp), str(out))), stacklevel=2)
+        warnings.warn(w, stacklevel=2)
     return out
 
 

@@ -483,6 +483,24 @@ def check_object_in_front(cameras: Cameras, masks: np.ndarray, names: Sequence[s
     return p
 
 
+def check_staged_scene(tmp: Path, out: Path, cameras_from: str | os.PathLike) -> list[Warning]:
+    """Load the scene folder an importer has just written into the temporary folder `tmp` (to be
+    renamed onto `out`), so every scene-folder check applies (e.g. cameras that do not see the
+    object). Its messages name the user's files rather than the temporary folder: `out` for `tmp`,
+    and `cameras_from` (the file or model the cameras came from) for tmp/scene.json. Raises that
+    LookingGlassError; returns the warnings it emitted (to re-emit once `out` is in place)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            load_capture(tmp)
+        except LookingGlassError as exc:
+            message = str(exc)
+            if exc.path == str(tmp / SCENE_FILE):
+                message = f"{cameras_from}: {message[len(exc.path) + 2:]}"
+            raise LookingGlassError(message.replace(str(tmp), str(out))) from None
+    return [type(w.message)(str(w.message).replace(str(tmp), str(out))) for w in caught]
+
+
 # ---------------------------------------------------------------------------------------------
 # Writing a scene folder
 # ---------------------------------------------------------------------------------------------
@@ -550,4 +568,4 @@ def save_scene(folder: str | os.PathLike, spec: SceneSpec, images: np.ndarray | 
 
 
 __all__ = ["SCENE_FILE", "DEFAULT_IOR", "ViewSpec", "SceneSpec", "Capture", "load_capture", "save_scene",
-           "triangulate_mask_centroids", "check_object_in_front"]
+           "triangulate_mask_centroids", "check_object_in_front", "check_staged_scene"]

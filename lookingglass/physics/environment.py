@@ -91,3 +91,26 @@ class EnvironmentMap:
         top = g(y0, x0) * (1 - wx) + g(y0, x1) * wx
         bottom = g(y1, x0) * (1 - wx) + g(y1, x1) * wx
         return top * (1 - wy) + bottom * wy
+
+
+def texel_directions(height: int, dtype=torch.float64, device="cpu") -> Tensor:
+    """The direction of every texel of an H x 2H map, where `EnvironmentMap.lookup_uv` reads it
+    exactly: column c at u = (c + 1/2) / W (texel-centred), row r at v = r / (H - 1) (rows span the
+    poles). Returns unit directions (H, 2H, 3). A map whose texel (r, c) holds the radiance from
+    direction [r, c] is looked up consistently by `EnvironmentMap.lookup` (writing and reading one
+    convention)."""
+    H, W = int(height), 2 * int(height)
+    u = (torch.arange(W, dtype=dtype, device=device) + 0.5) / W
+    v = torch.arange(H, dtype=dtype, device=device) / max(H - 1, 1)
+    vv, uu = torch.meshgrid(v, u, indexing="ij")
+    return uv_to_direction(uu, vv)
+
+
+def rotate_envmap(radiance: Tensor, rotation: Tensor) -> Tensor:
+    """The map of the same light in a rotated world frame: world' = rotation @ world, so the new map
+    holds E'(d') = E(rotation^T d'). radiance: (H, 2H, 3); rotation: (3, 3) orthonormal. Bilinear
+    (`EnvironmentMap.lookup`), same size and dtype."""
+    env = EnvironmentMap(radiance)
+    dirs = texel_directions(env.height, dtype=torch.float64, device=radiance.device)
+    old = dirs @ rotation.to(dirs)  # rows: (R^T d')^T = d'^T R
+    return env.lookup(old.to(radiance.dtype))

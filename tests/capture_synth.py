@@ -1,0 +1,161 @@
+"""A synthetic real capture with known truth, for the real-capture tests (issue 26): photos taken by a
+radially distorting camera (COLMAP's SIMPLE_RADIAL) of a glass object, of a mirror ball and of a
+textured room, under a known environment map; the true cameras as a COLMAP text model.
+
+Everything is made with the project's own physics: `Cameras` rays, `EnvironmentMap.lookup`, the
+glass renderer `render_views` and `object_masks`; the distortion is COLMAP's own equations
+(pycolmap `Camera.cam_from_img`) applied with `cv2.remap`.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import torch
+from scipy.spatial.transform import Rotation
+
+from lookingglass.physics.camera import Cameras
+from lookingglass.physics.environment import EnvironmentMap
+
+
+def colmap_camera(cameras: Cameras, k: float) -> pycolmap.Camera:
+    """The SIMPLE_RADIAL camera with `cameras`' (shared) focal length and size, centred, distortion k."""
+    f = cameras.width / (2 * float(cameras.tan_half_fov_x[0]))
+    return pycolmap.Camera(model="SIMPLE_RADIAL", width=cameras.width, height=cameras.height,
+                           params=[f, cameras.width / 2, cameras.height / 2, k])
+
+
+def cam_from_world(cameras: Cameras) -> tuple[np.ndarray, np.ndarray]:
+    """COLMAP poses of our cameras: R (V, 3, 3) rows (right, -up, forward), t (V, 3) = -R origin."""
+    basis = cameras.basis.double().numpy()
+    R = basis * np.array([1.0, -1.0, 1.0])[None, :, None]
+    t = -np.einsum("vij,vj->vi", R, cameras.origin.double().numpy())
+    return R, t
+
+
+def write_colmap_text(folder: Path, cameras: Cameras, names: list[str], k: float) -> Path:
+    """The true cameras as a COLMAP text model (one shared SIMPLE_RADIAL camera) in `folder`."""
+    folder.mkdir(parents=True, exist_ok=True)
+    cam = colmap_camera(cameras, k)
+    (folder / "cameras.txt").write_text("# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
+                                        f"1 SIMPLE_RADIAL {cam.width} {cam.height} "
+                                        + " ".join(f"{p:.12g}" for p in cam.params) + "\n")
+    R, t = cam_from_world(cameras)
+    lines = []
+    for i, name in enumerate(names):
+        x, y, z, w = Rotation.from_matrix(R[i]).as_quat()
+        lines += [f"{i + 1} {w:.15g} {x:.15g} {y:.15g} {z:.15g} " + " ".join(f"{v:.15g}" for v in t[i])
+                  + f" 1 {name}", ""]
+    (folder / "images.txt").write_text("\n".join(lines) + "\n")
+    (folder / "points3D.txt").write_text("")
+    return folder
+
+
+def distort(images: np.ndarray, cameras: Cameras, k: float) -> np.ndarray:
+    """Pinhole renders (V, H, W[, C]) of `cameras` as the SIMPLE_RADIAL camera with distortion k
+    sees them: each distorted pixel takes the pinhole image at its undistorted ray (bilinear)."""
+    cam = colmap_camera(cameras, k)
+    W, H = cameras.width, cameras.height
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64) + 0.5
+    norm = np.asarray(cam.cam_from_img(np.stack([xs.ravel(), ys.ravel()], -1)))  # (N, 2)
+    f = cam.params[0]
+    mx = (norm[:, 0] * f + W / 2 - 0.5).reshape(H, W).astype(np.float32)
+    my = (norm[:, 1] * f + H / 2 - 0.5).reshape(H, W).astype(np.float32)
+    return np.stack([cv2.remap(img.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                     for img in images])
+
+
+def look_at_rig(num_views: int, seed: int, distance: float, width: int, height: int, fov_x_deg: float = 55.0,
+                centre=(0.0, 0.0, 0.0), heights=(20.0, -15.0)) -> Cameras:
+    """Cameras around `centre` at two heights (elevations in degrees), random azimuths and small
+    target jitter and roll: a hand-held shoot of one spot."""
+    rng = np.random.default_rng(seed)
+    az = np.linspace(0, 2 * math.pi, num_views, endpoint=False) + rng.uniform(-0.2, 0.2, num_views)
+    el = np.radians(np.array([heights[i % 2] for i in range(num_views)]) + rng.uniform(-5, 5, num_views))
+    dirs = np.stack([np.cos(el) * np.sin(az), np.sin(el), np.cos(el) * np.cos(az)], -1)
+    c = np.asarray(centre, np.float64)
+    origin = c + distance * dirs * rng.uniform(0.9, 1.1, (num_views, 1))
+    target = c + rng.uniform(-0.05, 0.05, (num_views, 3)) * distance
+    up = np.array([0.0, 1.0, 0.0]) + rng.uniform(-0.08, 0.08, (num_views, 3))
+    return Cameras.look_at(origin, target, up, fov_x_deg, width, height, dtype=torch.float64)
+
+
+def _supersampled(cameras: Cameras, shade, samples_per_axis: int) -> np.ndarray:
+    """Box-filtered image (V, H, W, 3): shade(origins (V, H, W, 3), dirs (V, H, W, 3)) averaged over
+    s x s sub-pixel rays."""
+    s = samples_per_axis
+    acc = 0.0
+    for i in range(s):
+        for j in range(s):
+            o, d = cameras.pixel_rays(subpixel=((j + 0.5) / s, (i + 0.5) / s))
+            acc = acc + shade(o, d)
+    return (acc / (s * s)).numpy().astype(np.float32)
+
+
+def mirror_ball_photos(envmap: np.ndarray, cameras: Cameras, centre, radius: float, reflectance: float = 0.8,
+                       samples_per_axis: int = 3) -> np.ndarray:
+    """Pinhole photos (V, H, W, 3) linear of a perfect mirror sphere (reflectance) under `envmap`
+    (distant, also seen behind the ball)."""
+    env = EnvironmentMap(torch.as_tensor(envmap, dtype=torch.float64))
+    c = torch.as_tensor(centre, dtype=torch.float64)
+
+    def shade(o, d):
+        oc = o - c
+        b = (oc * d).sum(-1)
+        disc = b * b - ((oc * oc).sum(-1) - radius ** 2)
+        hit = (disc > 0) & (-b - disc.clamp(min=0).sqrt() > 0)
+        t = -b - disc.clamp(min=0).sqrt()
+        n = torch.nn.functional.normalize(o + t[..., None] * d - c, dim=-1)
+        refl = d - 2 * (d * n).sum(-1, keepdim=True) * n
+        return torch.where(hit[..., None], reflectance * env.lookup(refl), env.lookup(d))
+
+    return _supersampled(cameras.to(dtype=torch.float64), shade, samples_per_axis)
+
+
+def room_texture(seed: int, size: int = 512) -> np.ndarray:
+    """A grey multi-scale noise texture (size, size) in [0.05, 1]: corners for SIFT at every scale."""
+    rng = np.random.default_rng(seed)
+    tex = np.zeros((size, size), np.float32)
+    for cells, weight in ((4, 1.0), (16, 0.7), (64, 0.5), (size // 2, 0.3)):
+        noise = rng.random((cells, cells)).astype(np.float32)
+        tex += weight * cv2.resize(noise, (size, size), interpolation=cv2.INTER_CUBIC if cells < size // 2
+                                   else cv2.INTER_NEAREST)
+    tex -= tex.min()
+    return 0.05 + 0.95 * tex / tex.max()
+
+
+def room_photos(cameras: Cameras, half_size: float = 4.0, seed: int = 0, samples_per_axis: int = 2) -> np.ndarray:
+    """Pinhole photos (V, H, W, 3) from inside a cube room |p|_inf <= half_size whose six walls carry
+    different noise textures (one texture tile per wall)."""
+    textures = torch.from_numpy(np.stack([room_texture(seed * 6 + k) for k in range(6)]))  # (6, S, S)
+    S = textures.shape[-1]
+
+    def shade(o, d):
+        t_axes = (torch.sign(d) * half_size - o) / torch.where(d.abs() > 1e-12, d, torch.full_like(d, 1e-12))
+        t, axis = t_axes.min(dim=-1)
+        p = o + t[..., None] * d
+        wall = axis * 2 + (torch.gather(d, -1, axis[..., None])[..., 0] > 0).long()
+        uv_axes = torch.tensor([[1, 2], [0, 2], [0, 1]])[axis]  # the two other coordinates
+        uv = torch.gather(p, -1, uv_axes) / (2 * half_size) + 0.5  # [0, 1]
+        ij = (uv.clamp(0, 1 - 1e-6) * S).long()
+        value = textures[wall, ij[..., 1], ij[..., 0]]
+        return value[..., None].expand(*value.shape, 3).double()
+
+    return _supersampled(cameras.to(dtype=torch.float64), shade, samples_per_axis)
+
+
+def log_luminance_correlation(a: np.ndarray, b: np.ndarray, valid: np.ndarray | None = None) -> float:
+    """Pearson correlation of log luminance of two (H, 2H, 3) maps, solid-angle weighted, over `valid`."""
+    lum = lambda x: np.log(np.maximum(x @ np.array([0.2126, 0.7152, 0.0722]), 1e-4))  # noqa: E731
+    H = a.shape[0]
+    w = np.repeat(np.sin(np.pi * (np.arange(H) + 0.5) / H)[:, None], a.shape[1], 1)
+    if valid is not None:
+        w = w * valid
+    la, lb = lum(a), lum(b)
+    ma, mb = (w * la).sum() / w.sum(), (w * lb).sum() / w.sum()
+    cov = (w * (la - ma) * (lb - mb)).sum()
+    return float(cov / math.sqrt((w * (la - ma) ** 2).sum() * (w * (lb - mb) ** 2).sum()))
