@@ -91,3 +91,46 @@ def test_import_colmap_hull_matches_true_cameras(glass_capture, tmp_path):
     true = EnvironmentMap(torch.from_numpy(g["env"]).double()).lookup(d)
     scene = EnvironmentMap(torch.from_numpy(cap.envmap).double()).lookup(d @ torch.from_numpy(R).T)
     assert log_luminance_correlation(true.numpy()[None], scene.numpy()[None]) > 0.97
+
+
+BALL_CENTRE, BALL_RADIUS = np.array([0.2, 0.9, -0.1]), 0.25
+
+
+@pytest.fixture(scope="module")
+def ball_capture(tmp_path_factory):
+    """8 HDR photos (400x300, EXR, distorting camera) of a mirror ball (reflectance 0.8) under a
+    procedural map, the true cameras as a COLMAP model, and circles as a user would click them (the
+    projected centre and radius rounded to whole pixels)."""
+    root = tmp_path_factory.mktemp("ball")
+    env = procedural_envmap(np.random.default_rng(5), 128)
+    cams = look_at_rig(8, 1, 2.0, 400, 300, fov_x_deg=50, centre=BALL_CENTRE)
+    photos = distort(mirror_ball_photos(env, cams, BALL_CENTRE, BALL_RADIUS, 0.8, samples_per_axis=2), cams, K1)
+    names = [f"ball_{i}" for i in range(len(photos))]
+    for name, img in zip(names, photos):
+        write_image(root / "ball" / f"{name}.exr", img)
+    write_colmap_text(root / "model", cams, [f"{n}.exr" for n in names], K1)
+    xy, depth = cams.project(torch.from_numpy(BALL_CENTRE)[None])
+    f = cams.width / (2 * float(cams.tan_half_fov_x[0]))
+    r = f * np.tan(np.arcsin(BALL_RADIUS / depth[:, 0].numpy()))
+    (root / "circles.txt").write_text("".join(f"{n} {round(x)} {round(y)} {round(rr)}\n"
+                                              for n, (x, y), rr in zip(names, xy[:, 0].tolist(), r)))
+    return dict(root=root, env=env, cams=cams, names=names)
+
+
+def test_envmap_from_ball_recovers_ball_and_map(ball_capture, tmp_path):
+    from lookingglass.capture.ball import envmap_from_ball
+    from lookingglass.data.envmaps import resize_envmap
+
+    root = ball_capture["root"]
+    record = envmap_from_ball(root / "model", root / "ball", tmp_path / "env.hdr", circles=root / "circles.txt",
+                              size=(256, 128))
+    err = np.linalg.norm(np.array(record["centre"]) - BALL_CENTRE) / BALL_RADIUS
+    rad = abs(record["radius"] / BALL_RADIUS - 1)
+    est = read_envmap(tmp_path / "env.hdr")
+    corr = log_luminance_correlation(est, resize_envmap(ball_capture["env"], 128))
+    residuals = [v["residual_px"] for v in record["views"]]
+    print(f"ball centre error {100 * err:.2f}% of r, radius error {100 * rad:.2f}%, envmap log-lum corr {corr:.3f}, "
+          f"residuals px {np.round(residuals, 2).tolist()}")
+    assert err < 0.01 and rad < 0.03
+    assert corr >= 0.9
+    assert (tmp_path / "env.preview.png").is_file() and len(record["views"]) == 8

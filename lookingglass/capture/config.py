@@ -65,7 +65,7 @@ class BallConfig:
     max_incidence_deg: float = setting(70.0, "Skip reflections seen more obliquely than this (degrees).",
                                        range=(10, 89))
     edge_samples: int = setting(360, "Radial profiles locating the ball's outline.", range=(16, 4096))
-    edge_search: float = setting(0.12, "Outline searched within this fraction of the radius of the circle.",
+    edge_search: float = setting(0.04, "Outline finally searched within this fraction of the radius of the circle.",
                                  range=(0.01, 0.5))
     min_radius_frac: float = setting(0.03, "Smallest ball radius the detector looks for (of the shorter side).",
                                      range=(0.005, 0.5))
