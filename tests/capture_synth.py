@@ -116,33 +116,51 @@ def mirror_ball_photos(envmap: np.ndarray, cameras: Cameras, centre, radius: flo
     return _supersampled(cameras.to(dtype=torch.float64), shade, samples_per_axis)
 
 
-def room_texture(seed: int, size: int = 512) -> np.ndarray:
-    """A grey multi-scale noise texture (size, size) in [0.05, 1]: corners for SIFT at every scale."""
+def room_texture(seed: int, size: int = 1024) -> np.ndarray:
+    """A grey wall (size, size) in [0.05, 1] covered with random discs and boxes of random shades:
+    sharp, unrepeated corners for SIFT at every scale."""
     rng = np.random.default_rng(seed)
-    tex = np.zeros((size, size), np.float32)
-    for cells, weight in ((4, 1.0), (16, 0.7), (64, 0.5), (size // 2, 0.3)):
-        noise = rng.random((cells, cells)).astype(np.float32)
-        tex += weight * cv2.resize(noise, (size, size), interpolation=cv2.INTER_CUBIC if cells < size // 2
-                                   else cv2.INTER_NEAREST)
-    tex -= tex.min()
-    return 0.05 + 0.95 * tex / tex.max()
+    tex = np.full((size, size), 0.5, np.float32)
+    for _ in range(600):
+        shade = float(rng.uniform(0.05, 1.0))
+        x, y = (int(v) for v in rng.integers(0, size, 2))
+        r = int(rng.integers(size // 100, size // 12))
+        if rng.random() < 0.5:
+            cv2.circle(tex, (x, y), r, shade, -1, lineType=cv2.LINE_AA)
+        else:
+            cv2.rectangle(tex, (x - r, y - r // 2), (x + r, y + r // 2), shade, -1, lineType=cv2.LINE_AA)
+    return tex
 
 
-def room_photos(cameras: Cameras, half_size: float = 4.0, seed: int = 0, samples_per_axis: int = 2) -> np.ndarray:
-    """Pinhole photos (V, H, W, 3) from inside a cube room |p|_inf <= half_size whose six walls carry
-    different noise textures (one texture tile per wall)."""
-    textures = torch.from_numpy(np.stack([room_texture(seed * 6 + k) for k in range(6)]))  # (6, S, S)
+def room_photos(cameras: Cameras, half_size: float = 4.0, seed: int = 0, samples_per_axis: int = 2,
+                table=((-0.8, -0.9, -0.8), (0.8, -0.4, 0.8))) -> np.ndarray:
+    """Pinhole photos (V, H, W, 3) from inside a cube room |p|_inf <= half_size whose six walls, and
+    the faces of a box ("table": its min and max corners) standing in it, carry random textures."""
+    textures = torch.from_numpy(np.stack([room_texture(seed * 12 + k) for k in range(12)]))  # (12, S, S)
     S = textures.shape[-1]
+    lo, hi = torch.tensor(table[0], dtype=torch.float64), torch.tensor(table[1], dtype=torch.float64)
+    others = torch.tensor([[1, 2], [0, 2], [0, 1]])
+
+    def texel(p, axis, wall, low, high):
+        uv = (torch.gather(p, -1, others[axis]) - torch.gather(low.expand_as(p), -1, others[axis])) \
+            / torch.gather((high - low).expand_as(p), -1, others[axis])
+        ij = (uv.clamp(0, 1 - 1e-6) * S).long()
+        return textures[wall, ij[..., 1], ij[..., 0]]
 
     def shade(o, d):
-        t_axes = (torch.sign(d) * half_size - o) / torch.where(d.abs() > 1e-12, d, torch.full_like(d, 1e-12))
-        t, axis = t_axes.min(dim=-1)
-        p = o + t[..., None] * d
+        safe = torch.where(d.abs() > 1e-12, d, torch.full_like(d, 1e-12))
+        t_room, axis = ((torch.sign(d) * half_size - o) / safe).min(dim=-1)
+        p = o + t_room[..., None] * d
         wall = axis * 2 + (torch.gather(d, -1, axis[..., None])[..., 0] > 0).long()
-        uv_axes = torch.tensor([[1, 2], [0, 2], [0, 1]])[axis]  # the two other coordinates
-        uv = torch.gather(p, -1, uv_axes) / (2 * half_size) + 0.5  # [0, 1]
-        ij = (uv.clamp(0, 1 - 1e-6) * S).long()
-        value = textures[wall, ij[..., 1], ij[..., 0]]
+        value = texel(p, axis, wall, torch.full((3,), -half_size, dtype=torch.float64),
+                      torch.full((3,), half_size, dtype=torch.float64))
+        t1, t2 = (lo - o) / safe, (hi - o) / safe
+        near, far = torch.minimum(t1, t2), torch.maximum(t1, t2)
+        t_in, face = near.max(dim=-1)
+        hit = (t_in <= far.min(dim=-1).values) & (t_in > 0)
+        q = o + t_in[..., None] * d
+        side = 6 + face * 2 + (torch.gather(d, -1, face[..., None])[..., 0] < 0).long()
+        value = torch.where(hit, texel(q, face, side, lo, hi), value)
         return value[..., None].expand(*value.shape, 3).double()
 
     return _supersampled(cameras.to(dtype=torch.float64), shade, samples_per_axis)
