@@ -38,6 +38,9 @@ GENERATE_OPTIONS = ConfigOptions("dataset", exclude=frozenset({"preset", "hull.n
 TRAIN_NORMALS_OPTIONS = ConfigOptions("normal_training", aliases={"net.num_views": "--views"}, exclude=frozenset(
     {"net.width", "net.height", "net.use_error_map", "net.use_cost_volume"}))
 TRAIN_POINTS_OPTIONS = ConfigOptions("point_training")
+SFM_OPTIONS = ConfigOptions("capture", exclude=frozenset({"ball"}))
+BALL_OPTIONS = ConfigOptions("capture", exclude=frozenset({"sfm"}))
+CAPTURE_OPTIONS = ConfigOptions("capture")
 EVAL_SHAPES_OPTIONS = ConfigOptions("pipeline", only=frozenset({"surface.points"}),
                                     aliases={"surface.points": "--surface-points"})
 
@@ -162,6 +165,80 @@ def import_colmap(
 
     path = run(model, images, masks, envmap, out, ior=ior, size=size, up=_parse_up(up), force=force)
     Console(stderr=True).print(f"wrote {path}")
+
+
+def _capture_config(ctx: typer.Context):
+    from .presets import preset as make_preset
+
+    return apply_config_flags(ctx, make_preset(DEFAULT_PRESET).capture)
+
+
+@app.command(cls=config_command(SFM_OPTIONS))
+def sfm(
+    ctx: typer.Context,
+    images: list[Path] = typer.Option(..., "--images", help="Folder of photos (repeat for several folders, e.g. "
+                                                            "the object's and the ball's: one model for all)."),
+    out: Path = typer.Option(..., "--out", help="Folder for the COLMAP model (OUT/model), its database (kept: a "
+                                                "rerun skips finished steps) and sfm.json."),
+    masks: Optional[Path] = typer.Option(None, "--masks", help="Object masks (by file stem): features on the "
+                                                               "object are not used."),
+    quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
+) -> None:
+    """Camera poses of every photo by structure from motion (pycolmap): one shared camera, CPU SIFT;
+    unregistered photos and poses that do not fit are listed."""
+    from .capture.sfm import run_sfm
+    from .progress import Reporter
+
+    record = run_sfm(images, out, masks, _capture_config(ctx).sfm, Reporter(quiet=quiet))
+    Console(stderr=True).print(f"wrote {out / 'model'} ({len(record['registered'])} of {record['photos']} photos "
+                               "registered)")
+
+
+@app.command("envmap-from-ball", cls=config_command(BALL_OPTIONS))
+def envmap_from_ball(
+    ctx: typer.Context,
+    model: Path = typer.Option(..., "--model", help="COLMAP model holding the ball photos (e.g. from `sfm`)."),
+    images: Path = typer.Option(..., "--images", help="Folder of the mirror-ball photos."),
+    out: Path = typer.Option(..., "--out", help="Environment map to write (.hdr or .exr); a preview PNG and the "
+                                                "ball fit (JSON) go beside it."),
+    circles: Optional[Path] = typer.Option(None, "--circles", help="The ball's circle in photos where detection "
+                                                                   "fails: lines 'stem cx cy r' (pixels)."),
+    size: tuple[int, int] = typer.Option((1024, 512), "--size", help="Map size W H (W = 2 H)."),
+    force: bool = typer.Option(False, "--force", help="Replace existing output files."),
+) -> None:
+    """The environment map, in the model's frame, from photos of a mirror ball: the ball found and
+    triangulated, each view unwrapped, the views merged by their median."""
+    from .capture.ball import envmap_from_ball as run
+
+    record = run(model, images, out, circles=circles, size=size, config=_capture_config(ctx).ball, force=force)
+    worst = max(v["residual_px"] for v in record["views"])
+    Console(stderr=True).print(f"wrote {out} (ball radius {record['radius']:.4g} model units, {len(record['views'])} "
+                               f"views, worst outline misfit {worst:.2f} px)")
+
+
+@app.command(cls=config_command(CAPTURE_OPTIONS))
+def capture(
+    ctx: typer.Context,
+    photos: Path = typer.Option(..., "--photos", help="Folder of the object's photos."),
+    ball: Path = typer.Option(..., "--ball", help="Folder of the mirror-ball photos (same spot, same exposure)."),
+    masks: Path = typer.Option(..., "--masks", help="Folder of the object's masks (by file stem)."),
+    out: Path = typer.Option(..., "--out", help="Work folder: sfm/, envmap.hdr, scene/, result/ (a rerun resumes "
+                                                "after the last finished stage)."),
+    circles: Optional[Path] = typer.Option(None, "--circles", help="Ball circles where detection fails ('stem cx cy "
+                                                                   "r' lines)."),
+    ior: float = typer.Option(IOR_GLASS, help="Index of refraction of the object."),
+    size: Optional[tuple[int, int]] = typer.Option(None, "--size", help="Resize the scene's images to W H."),
+    envmap_size: tuple[int, int] = typer.Option((1024, 512), "--envmap-size", help="Environment map size W H."),
+    quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
+) -> None:
+    """From photos, ball photos and masks to a mesh: sfm, envmap-from-ball, import-colmap and
+    reconstruct, each stage skipped when its output is already there."""
+    from .capture.workflow import run_capture
+    from .progress import Reporter
+
+    result = run_capture(photos, ball, masks, out, _capture_config(ctx), circles=circles, ior=ior, size=size,
+                         envmap_size=envmap_size, reporter=Reporter(quiet=quiet))
+    Console(stderr=True).print(f"wrote {result}")
 
 
 @app.command()

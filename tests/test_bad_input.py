@@ -404,3 +404,99 @@ def test_bad_input_in_a_real_process(base, tmp_path):
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert proc.returncode == 2 and len(lines) == 1 and "envmap.hdr" in lines[0], proc.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]
+
+
+# ---- real captures (issue 26): import-colmap, envmap-from-ball, sfm ------------------------------
+@pytest.fixture(scope="module")
+def real(tmp_path_factory) -> Path:
+    """4 photos (96x72) with masks and a COLMAP text model of their cameras, 3 ball photos in the
+    same model, an environment map."""
+    from capture_synth import look_at_rig, mirror_ball_photos, write_colmap_text
+
+    root = tmp_path_factory.mktemp("real")
+    rng = np.random.default_rng(0)
+    cams = look_at_rig(7, 0, 3.0, 96, 72)
+    env = procedural_envmap(rng, 16)
+    write_image(root / "env.hdr", env)
+    yy, xx = np.mgrid[0:72, 0:96]
+    for i in range(4):
+        write_image(root / "photos" / f"IMG_{i}.png", rng.random((72, 96, 3)).astype(np.float32))
+        write_mask(root / "masks" / f"IMG_{i}.png", (xx - 48) ** 2 / 20 ** 2 + (yy - 36) ** 2 / 15 ** 2 < 1)
+    balls = mirror_ball_photos(env, cams.select(slice(4, 7)), (0, 0, 0), 0.5, samples_per_axis=1)
+    for i, img in enumerate(balls):
+        write_image(root / "ball" / f"b{i}.png", img)
+    write_colmap_text(root / "model", cams, [f"IMG_{i}.png" for i in range(4)] + [f"b{i}.png" for i in range(3)], 0.0)
+    return root
+
+
+def copy_real(root: Path, work: Path) -> Path:
+    for name in ("photos", "masks", "ball", "model"):
+        shutil.copytree(root / name, work / name)
+    shutil.copy(root / "env.hdr", work / "env.hdr")
+    return work
+
+
+def import_colmap_args(work: Path) -> list:
+    return ["import-colmap", "--model", work / "model", "--images", work / "photos", "--masks", work / "masks",
+            "--envmap", work / "env.hdr", "--out", work / "out"]
+
+
+def resized(path: Path, w: int, h: int) -> None:
+    import cv2
+    cv2.imwrite(str(path), cv2.resize(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), (w, h)))
+
+
+def real_photo_other_size(root, work):
+    resized(copy_real(root, work) / "photos" / "IMG_1.png", 80, 60)
+    return import_colmap_args(work), "IMG_1.png", ("80x60", "COLMAP model")
+
+
+def real_model_lacks_photo(root, work):
+    copy_real(root, work)
+    shutil.copy(work / "photos" / "IMG_0.png", work / "photos" / "IMG_9.png")
+    shutil.copy(work / "masks" / "IMG_0.png", work / "masks" / "IMG_9.png")
+    return import_colmap_args(work), "IMG_9.png", ("not in the COLMAP model",)
+
+
+def real_mask_other_size(root, work):
+    resized(copy_real(root, work) / "masks" / "IMG_2.png", 48, 36)
+    return import_colmap_args(work), "IMG_2.png", ("mask is 48x36",)
+
+
+def real_ball_not_found(root, work):
+    copy_real(root, work)
+    write_image(work / "ball" / "b0.png", np.full((72, 96, 3), 0.3, np.float32))
+    return (["envmap-from-ball", "--model", work / "model", "--images", work / "ball", "--out", work / "out" / "env.hdr",
+             "--size", 32, 16], "b0.png", ("mirror ball not found", "--circles"))
+
+
+def real_sfm_sizes(root, work):
+    resized(copy_real(root, work) / "photos" / "IMG_3.png", 80, 60)
+    return ["sfm", "--images", work / "photos", "--out", work / "out", "--quiet"], "IMG_3.png", ("share one size",)
+
+
+REAL_PROBES = [Probe("photo-other-size", real_photo_other_size), Probe("model-lacks-photo", real_model_lacks_photo),
+               Probe("mask-other-size", real_mask_other_size), Probe("ball-not-found", real_ball_not_found),
+               Probe("sfm-photo-sizes", real_sfm_sizes)]
+
+
+@pytest.mark.parametrize("probe", REAL_PROBES, ids=[p.id for p in REAL_PROBES])
+def test_real_capture_bad_input(probe, real, tmp_path, capfd):
+    work = tmp_path / "work"
+    work.mkdir()
+    args, names, fragments = probe.setup(real, work)
+    capfd.readouterr()
+    inputs = digest(work)
+    code, err = run_cli(capfd, *args)
+    assert_clean_failure(code, err, names, *fragments)
+    assert digest(work) == inputs, "an input changed"
+    assert not (work / "out").exists() and not glob.glob(str(work / ".out.*")), "something was written"
+
+
+def test_sfm_too_few_registered_photos(tmp_path, capfd):
+    """Featureless photos: no model; the message names the folder, nothing that looks finished."""
+    for i in range(3):
+        write_image(tmp_path / "photos" / f"P{i}.png", np.full((60, 80, 3), 0.4, np.float32))
+    code, err = run_cli(capfd, "sfm", "--images", tmp_path / "photos", "--out", tmp_path / "out", "--quiet")
+    assert_clean_failure(code, err, str(tmp_path / "out"), "photos")
+    assert not (tmp_path / "out" / "model").exists() and not (tmp_path / "out" / "sfm.json").exists()

@@ -124,7 +124,7 @@ def run_sfm(image_dirs: list[str | os.PathLike], out: str | os.PathLike, masks: 
     from ..progress import Reporter
 
     reporter = reporter or Reporter(quiet=True)
-    pycolmap.logging.minloglevel = 2  # COLMAP's own lines: errors only; the stages show progress
+    pycolmap.logging.minloglevel = 3  # no COLMAP log lines: the stages show progress, errors are ours
     dirs = [Path(d) for d in image_dirs]
     out = Path(out)
     if out.exists() and not out.is_dir():
