@@ -173,3 +173,36 @@ def test_sfm_recovers_poses_of_a_textured_shoot(tmp_path):
     start = time.perf_counter()
     again = run_sfm([tmp_path / "photos"], tmp_path / "sfm")
     assert again["registered"] == record["registered"] and time.perf_counter() - start < 5
+
+
+def test_cli_envmap_from_ball_then_import_colmap(ball_capture, glass_capture, tmp_path):
+    """The two commands chained as a user would, through the command line: the ball's map (a config
+    flag given) becomes the scene's envmap, rotated into the scene's frame."""
+    from cli_helpers import run
+
+    b, g = ball_capture["root"], glass_capture["root"]
+    proc = run("envmap-from-ball", "--model", b / "model", "--images", b / "ball", "--circles", b / "circles.txt",
+               "--out", tmp_path / "env.hdr", "--size", 64, 32, "--ball.reflectance", 0.8)
+    assert "wrote" in proc.stderr and (tmp_path / "env.ball.json").is_file()
+    run("import-colmap", "--model", g / "model", "--images", g / "photos", "--masks", g / "masks",
+        "--envmap", tmp_path / "env.hdr", "--out", tmp_path / "scene", "--size", 80, 60, "--up", 0, 1, 0)
+    cap = load_capture(tmp_path / "scene")
+    assert cap.num_views == 8 and (cap.width, cap.height) == (80, 60) and cap.envmap.shape == (32, 64, 3)
+    record = json.loads((tmp_path / "scene" / IMPORT_FILE).read_text())
+    assert record["up_from"] == "--up" and np.allclose(record["world_from_model"]["rotation"][1], [0, 1, 0])
+
+
+def test_ball_detection_finds_the_ball(ball_capture):
+    """OpenCV's Hough circles, refined onto the outline, against the clicked (true, rounded) circles."""
+    from lookingglass.capture.ball import detect_ball, read_circles
+    from lookingglass.capture.images import read_image
+
+    root = ball_capture["root"]
+    truth = read_circles(root / "circles.txt")
+    errors = []
+    for name in ball_capture["names"]:
+        found = detect_ball(read_image(root / "ball" / f"{name}.exr"))
+        cx, cy, r = truth[name]
+        errors.append(np.inf if found is None else max(math.hypot(found[0] - cx, found[1] - cy), abs(found[2] - r)))
+    print(f"ball detection error px: {np.round(errors, 2).tolist()}")
+    assert sum(e < 3.0 for e in errors) >= 7, errors
