@@ -21,4 +21,4 @@ if ! command -v chromium >/dev/null 2>&1 && ! command -v chromium-browser >/dev/
         echo "chromium is missing and apt-get needs root: the report's browser test will be skipped"
     fi
 fi
-.venv/bin/python -c "import lookingglass, torch, mitsuba; print('lookingglass', lookingglass.__version__, '| torch', torch.__version__)"
+.venv/bin/python -c "import lookingglass, torch, mitsuba, pycolmap; print('lookingglass', lookingglass.__version__, '| torch', torch.__version__, '| pycolmap', pycolmap.__version__)"
