@@ -33,39 +33,63 @@ from ..errors import LookingGlassError
 from ..fileio import check_output_dir, staged_dir, write_json, write_atomic
 from .colmap import read_model
 from .config import SfmConfig
-from .images import read_mask
+from .images import HDR_SUFFIXES, read_image, read_mask, write_image
 from .paper_import import PHOTO_SUFFIXES, _list_files, _masks_by_stem, natural_key
 
 SFM_FILE = "sfm.json"
 
 
-def _photos(image_dirs: list[Path]) -> tuple[Path, list[str], dict[str, Path]]:
-    """(image_path for COLMAP, image names, name -> photo file). One folder: names are file names;
-    several: 'folder/file' (folders named after the given folders, made unique)."""
+def _photos(image_dirs: list[Path]) -> tuple[Path | None, list[str], dict[str, Path]]:
+    """(image_path for COLMAP or None when the photos need a folder of links, image names, name ->
+    photo file). One folder of 8-bit photos: names are file names, read in place; several folders:
+    'folder/file' (folders named after the given folders, made unique). An HDR photo (.exr/.hdr) is
+    named <stem>.png: COLMAP reads a tone-mapped 8-bit copy of it (`_link_photos`)."""
     if not image_dirs:
         raise LookingGlassError("no photo folder given")
     files: dict[str, Path] = {}
     labels: list[str] = []
     for folder in image_dirs:
-        found = _list_files(folder, PHOTO_SUFFIXES, "photo")
+        found = _list_files(folder, PHOTO_SUFFIXES + tuple(HDR_SUFFIXES), "photo")
         paths = sorted((p for ps in found.values() for p in ps), key=lambda p: natural_key(p.name))
         if not paths:
-            raise LookingGlassError(f"no photos ({'/'.join(PHOTO_SUFFIXES)}) in this folder", folder)
+            raise LookingGlassError(f"no photos ({'/'.join(PHOTO_SUFFIXES + tuple(sorted(HDR_SUFFIXES)))}) in this "
+                                    "folder", folder)
         label = folder.resolve().name or "photos"
         while label in labels:
             label += "_"
         labels.append(label)
         for p in paths:
-            files[p.name if len(image_dirs) == 1 else f"{label}/{p.name}"] = p
-    root = image_dirs[0] if len(image_dirs) == 1 else None
-    return root, sorted(files, key=natural_key), files
+            name = f"{p.stem}.png" if p.suffix.lower() in HDR_SUFFIXES else p.name
+            files[name if len(image_dirs) == 1 else f"{label}/{name}"] = p
+    in_place = len(image_dirs) == 1 and all(p.name == n for n, p in files.items())
+    return image_dirs[0] if in_place else None, sorted(files, key=natural_key), files
+
+
+def _link_photos(files: dict[str, Path], root: Path) -> None:
+    """root/<name> for every photo: a link to it, or for an HDR photo an 8-bit sRGB copy scaled to its
+    99th percentile."""
+    for name, path in files.items():
+        link = root / name
+        link.parent.mkdir(parents=True, exist_ok=True)
+        if link.is_symlink() or link.exists():
+            link.unlink()
+        if path.suffix.lower() in HDR_SUFFIXES:
+            img = read_image(path)
+            write_image(link, img / max(float(np.percentile(img, 99)), 1e-6))
+            continue
+        try:
+            link.symlink_to(path.resolve())
+        except OSError:
+            shutil.copyfile(path, link)
 
 
 def _check_sizes(files: dict[str, Path]) -> tuple[int, int]:
     """All photos share one size (one shared camera); returns it (W, H)."""
     size, first = None, None
     for path in files.values():
-        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | (cv2.IMREAD_ANYDEPTH if path.suffix.lower() == ".hdr" else 0))
+        if img is None and path.suffix.lower() == ".exr":
+            img = read_image(path)[..., 0]
         if img is None:
             raise LookingGlassError("cannot read image (corrupt or not an image)", path)
         if size is None:
@@ -83,24 +107,27 @@ def _stamp_ok(path: Path, stamp: dict) -> bool:
         return False
 
 
-def _feature_masks(files: dict[str, Path], masks: Path, out: Path, dilation: float) -> int:
-    """COLMAP masks out/masks/<name>.png (0 where no feature: the object's mask, dilated) for the
-    photos with an object mask; returns how many."""
+def _feature_masks(files: dict[str, Path], masks: Path, out: Path, dilation: float, size: tuple[int, int]) -> int:
+    """COLMAP masks out/masks/<name>.png (0 where no feature: the object's mask, dilated), one for
+    every photo (COLMAP skips a photo whose mask is missing: those without an object mask get an
+    all-white one); returns how many photos have an object mask."""
     mask_files = _masks_by_stem(masks)
     count = 0
     for name, photo in files.items():
         found = mask_files.get(photo.stem)
-        if not found:
-            continue
-        m = read_mask(found[0])
-        h, w = m.shape
-        r = max(1, int(round(dilation * math.hypot(w, h))))
-        grown = cv2.dilate(m.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+        pixels = np.full((size[1], size[0]), 255, np.uint8)
+        if found:
+            m = read_mask(found[0])
+            if m.shape != pixels.shape:
+                raise LookingGlassError(f"mask is {m.shape[1]}x{m.shape[0]} but its photo {photo.name} is "
+                                        f"{size[0]}x{size[1]}", found[0])
+            r = max(1, int(round(dilation * math.hypot(*size))))
+            kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+            pixels[cv2.dilate(m.astype(np.uint8), kernel) > 0] = 0
+            count += 1
         target = out / "masks" / f"{name}.png"
         target.parent.mkdir(parents=True, exist_ok=True)
-        pixels = np.where(grown > 0, 0, 255).astype(np.uint8)
         write_atomic(target, lambda p, a=pixels: cv2.imwrite(str(p), a))
-        count += 1
     return count
 
 
@@ -136,17 +163,9 @@ def run_sfm(image_dirs: list[str | os.PathLike], out: str | os.PathLike, masks: 
     W, H = _check_sizes(files)
     check_output_dir(out / "model", True)
     out.mkdir(parents=True, exist_ok=True)
-    if root is None:  # several folders: links under one image path
+    if root is None:  # several folders or HDR photos: links and copies under one image path
         root = out / "images"
-        for name, path in files.items():
-            link = root / name
-            link.parent.mkdir(parents=True, exist_ok=True)
-            if link.is_symlink() or link.exists():
-                link.unlink()
-            try:
-                link.symlink_to(path.resolve())
-            except OSError:
-                shutil.copyfile(path, link)
+        _link_photos(files, root)
     db = out / "database.db"
     settings = asdict(config)
     feature_stamp = {"names": names, "size": [W, H], "masks": str(masks) if masks else None,
@@ -160,7 +179,7 @@ def run_sfm(image_dirs: list[str | os.PathLike], out: str | os.PathLike, masks: 
             reader.camera_model = config.camera_model
             if masks is not None:
                 shutil.rmtree(out / "masks", ignore_errors=True)
-                if _feature_masks(files, Path(masks), out, config.mask_dilation):
+                if _feature_masks(files, Path(masks), out, config.mask_dilation, (W, H)):
                     reader.mask_path = str(out / "masks")
             extraction = pycolmap.FeatureExtractionOptions()
             extraction.max_image_size = config.max_image_size
