@@ -14,7 +14,7 @@ import pytest
 import torch
 import trimesh
 
-from capture_synth import (distort, log_luminance_correlation, look_at_rig, mirror_ball_photos, room_photos,
+from capture_synth import (distort, log_luminance_correlation, look_at_rig, mirror_ball_photos,
                            write_colmap_text)
 from lookingglass.capture.colmap import IMPORT_FILE, import_colmap, read_model
 from lookingglass.capture.images import read_envmap, write_image, write_mask

@@ -37,8 +37,8 @@ from ..fileio import staged_dir, write_json
 from ..physics.camera import Cameras
 from ..physics.constants import IOR_GLASS
 from ..physics.environment import rotate_envmap
-from .images import HDR_SUFFIXES, check_image_size, read_envmap, read_image, read_mask, write_image, write_mask
-from .paper_import import (MASK_SUFFIXES, PHOTO_SUFFIXES, _check_aspect, _check_envmap_and_out, _list_files,
+from .images import HDR_SUFFIXES, check_image_size, read_envmap, read_image, read_mask
+from .paper_import import (PHOTO_SUFFIXES, _check_aspect, _check_envmap_and_out, _list_files,
                            _masks_by_stem, _photos_for, natural_key)
 from .scene import SceneSpec, ViewSpec, check_staged_scene, save_scene, triangulate_mask_centroids
 

@@ -15,11 +15,12 @@ import shutil
 from pathlib import Path
 
 from ..errors import LookingGlassError
+from ..physics.constants import IOR_GLASS
 from .config import CaptureConfig
 
 
 def run_capture(photos: str | os.PathLike, ball: str | os.PathLike, masks: str | os.PathLike,
-                out: str | os.PathLike, config: CaptureConfig = CaptureConfig(), circles=None, ior: float = 1.4723,
+                out: str | os.PathLike, config: CaptureConfig = CaptureConfig(), circles=None, ior: float = IOR_GLASS,
                 size=None, envmap_size=(1024, 512), reporter=None) -> Path:
     """Run (or resume) the real-capture path into the work folder `out`; returns the mesh's path."""
     from ..pipeline import reconstruct
