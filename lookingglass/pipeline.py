@@ -151,13 +151,14 @@ def _surface(hull: VisualHull, normals: NormalStageResult, config: PipelineConfi
     return mesh
 
 
-def _refine(capture, hull: VisualHull, surface: trimesh.Trimesh, config: PipelineConfig, out_dir: Path,
-            reporter: Reporter) -> RefineResult:
+def _refine(capture, hull: VisualHull, surface: trimesh.Trimesh, normals: NormalStageResult,
+            config: PipelineConfig, out_dir: Path, reporter: Reporter) -> RefineResult:
     """The refine stage: writes OUT/surface.ply (its input) and OUT/refine.png; returns its result
     (the kept mesh, its re-rendering)."""
     with reporter.stage("refine", "refine (silhouettes + smoothness)") as rec:
         write_mesh(out_dir / "surface.ply", surface)
-        result = refine_surface(surface, hull, capture.masks, capture.cameras, config.refine, capture=capture)
+        result = refine_surface(surface, hull, capture.masks, capture.cameras, config.refine, capture=capture,
+                                normals=normals)
         views = sorted(set(np.linspace(0, capture.num_views - 1, min(4, capture.num_views)).round().astype(int)))
         silhouette_sheet(out_dir / "refine.png", capture.images, capture.masks, result.casts, views,
                          result.rerendering)
@@ -232,7 +233,7 @@ def _run(scene_dir: Path, out_dir: Path, config: PipelineConfig, wanted: tuple[s
             best = _surface(hull, normals, config, trained_views, device, out_dir, reporter)
             best_stage = "surface"
             if "refine" in wanted:
-                refined = _refine(capture, hull, best, config, out_dir, reporter)
+                refined = _refine(capture, hull, best, normals, config, out_dir, reporter)
                 best, best_stage, rendered = refined.mesh, "refine", refined.rerendering
         write_mesh(out_dir / "mesh.ply", best)
     messages = [str(w.message) for w in caught]

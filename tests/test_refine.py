@@ -19,11 +19,13 @@ from lookingglass.data.rigs import paper_rig
 from lookingglass.errors import ConfigError
 from lookingglass.hull import HullConfig, carve_visual_hull
 from lookingglass.metrics import shape_metrics
+from lookingglass.normals.inputs import NormalInputs
+from lookingglass.normals.predict import NormalMaps
 from lookingglass.physics.constants import IOR_GLASS
 from lookingglass.physics.environment import EnvironmentMap
 from lookingglass.refine import RefineConfig, refine_surface, silhouette_iou, uniform_laplacian
 from lookingglass.render.raycast import object_masks
-from lookingglass.render.tracer import RenderConfig, render_views
+from lookingglass.render.tracer import RenderConfig, render_views, trace_two_bounce
 
 # a coarser surface than the default (0.015) keeps the tests fast; the method is the same
 CONFIG = RefineConfig(edge_length=0.035)
@@ -140,10 +142,9 @@ def test_the_stage_is_configured():
         RefineConfig(view_coverage_zero=0.99, view_coverage_full=0.9)
 
 
-def test_photos_are_checked_and_the_photometric_term_descends(scene):
-    """With the photos (the ellipsoid rendered as glass by the renderer), the keep check
-    re-renders input and result against them and keeps the one that explains them better; the
-    opt-in photometric term lowers its own loss step by step."""
+@pytest.fixture(scope="module")
+def capture(scene):
+    """The ellipsoid rendered as glass by the renderer under a smooth synthetic map: the photos."""
     gt, cameras, masks, hull = scene
     u = torch.linspace(0, 1, 64)
     v = torch.linspace(0, 1, 32)[:, None]
@@ -151,8 +152,50 @@ def test_photos_are_checked_and_the_photometric_term_descends(scene):
     small = cameras.with_resolution(160, 120)
     photos = render_views(gt, EnvironmentMap(env), small, RenderConfig(samples_per_axis=2)).image
     photos = torch.nn.functional.interpolate(photos.permute(0, 3, 1, 2), size=masks.shape[1:], mode="bilinear")
-    capture = SimpleNamespace(images=photos.permute(0, 2, 3, 1).numpy(), masks=masks, envmap=env.numpy(),
-                              cameras=cameras, ior=IOR_GLASS)
+    return SimpleNamespace(images=photos.permute(0, 2, 3, 1).numpy(), masks=masks, envmap=env.numpy(),
+                           cameras=cameras, ior=IOR_GLASS)
+
+
+def normal_stage(capture, hull, n1, n2, error) -> SimpleNamespace:
+    """What the normal stage hands the refine stage (`NormalStageResult`'s inputs and maps), at
+    80x60, with the given normal maps (a function of the inputs' cameras) and error maps."""
+    x = NormalInputs.from_capture(capture.images, capture.masks, capture.envmap, capture.cameras, capture.ior,
+                                  hull.mesh, 80, 60, 32)
+    n1, n2 = n1(x.cameras), n2(x.cameras)
+    maps = NormalMaps(x.cameras, n1, n2, torch.full(x.mask.shape, float(error)), torch.zeros_like(x.mask), x.mask)
+    return SimpleNamespace(inputs=x, maps=maps)
+
+
+def test_the_normal_term_follows_trusted_normals_and_ignores_untrusted_ones(scene, capture):
+    """With the true normals as the network's prediction and a rendering error of 0 (a
+    prediction that explains every photo better than the mesh), the normal term removes the
+    ridges the silhouette pulls leave (CDN-mean against the ellipsoid falls well below the
+    silhouette-only result's); with the same normals but an error above any the mesh can have
+    (the photo backs nothing), it moves nothing."""
+    gt, cameras, masks, hull = scene
+    start = lumpy_shrunken(gt)
+    base_config = dataclasses.replace(CONFIG, rerender_width=0)
+    base = refine_surface(start, hull, masks, cameras, base_config).refined
+    truth = lambda c: trace_two_bounce(gt, c, ior=IOR_GLASS)  # noqa: E731
+    config = dataclasses.replace(base_config, normal_iterations=16)
+    trusted = normal_stage(capture, hull, lambda c: truth(c).normal1, lambda c: truth(c).normal2, 0.0)
+    result = refine_surface(start, hull, masks, cameras, config, normals=trusted)
+    losses = result.report["normal_loss"]
+    assert len(losses) == 17 and losses[-1] < 0.3 * losses[0]
+    cdn_base, cdn = (shape_metrics(m, gt)["cdn_mean"] for m in (base, result.refined))
+    assert cdn < 0.7 * cdn_base, (cdn_base, cdn)
+    assert min(result.report["silhouette_iou_after"]) > 0.97
+    untrusted = normal_stage(capture, hull, lambda c: truth(c).normal1, lambda c: truth(c).normal2, 10.0)
+    result = refine_surface(start, hull, masks, cameras, config, normals=untrusted)
+    assert result.report["normal_evidence"]["pixels_share"] == 0
+    np.testing.assert_allclose(result.refined.vertices, base.vertices, atol=1e-9)
+
+
+def test_photos_are_checked_and_the_photometric_term_descends(scene, capture):
+    """With the photos (the ellipsoid rendered as glass by the renderer), the keep check
+    re-renders input and result against them and keeps the one that explains them better; the
+    opt-in photometric term lowers its own loss step by step."""
+    gt, cameras, masks, hull = scene
     config = dataclasses.replace(CONFIG, photometric_iterations=2, rerender_width=80)
     result = refine_surface(lumpy_shrunken(gt), hull, masks, cameras, config, capture=capture)
     report = result.report
