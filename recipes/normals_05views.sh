@@ -26,4 +26,12 @@ step normals5 "$D5" 5 613 \
     --init "$RUNS/normals10/weights.safetensors" --epochs 2 --lr 2e-4 --lr-halve-epochs 1 --max-scenes 613 \
     --out "$RUNS/normals5"
 
-install_weights normals5 normals_05views
+# 2 epochs on 1000 5-view scenes like users' captures (issue 27; as step 3 of normals_10views.sh: CAD parts,
+# handles, thin parts and blobs beside the procedural shapes, hulls from masks 1-6x the image size, half the items
+# degraded like 8-bit photos), from the run above; two DDP processes (~22 min of data, ~13 min of training).
+GENERATE=generate_users step normals5users "$DATA/users5" 5 1000 \
+    "${DDP[@]}" train-normals --data "$DATA/users5" --views 5 --preset cpu --variant wr+cv --seed 0 \
+    --init "$RUNS/normals5/weights.safetensors" --epochs 2 --lr 2e-4 --lr-halve-epochs 1 --photo-noise 0.5 \
+    --max-scenes 1000 --out "$RUNS/normals5users"
+
+install_weights normals5users normals_05views
