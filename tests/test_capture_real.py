@@ -117,13 +117,16 @@ def ball_capture(tmp_path_factory):
     return dict(root=root, env=env, cams=cams, names=names)
 
 
-def test_envmap_from_ball_recovers_ball_and_map(ball_capture, tmp_path):
+@pytest.mark.parametrize("circles", [True, False], ids=["circles-file", "detected"])
+def test_envmap_from_ball_recovers_ball_and_map(ball_capture, tmp_path, circles):
+    """With the clicked circles, and with the ball detected in every photo (one sphere all views
+    agree on)."""
     from lookingglass.capture.ball import envmap_from_ball
     from lookingglass.data.envmaps import resize_envmap
 
     root = ball_capture["root"]
-    record = envmap_from_ball(root / "model", root / "ball", tmp_path / "env.hdr", circles=root / "circles.txt",
-                              size=(256, 128))
+    record = envmap_from_ball(root / "model", root / "ball", tmp_path / "env.hdr",
+                              circles=root / "circles.txt" if circles else None, size=(256, 128))
     err = np.linalg.norm(np.array(record["centre"]) - BALL_CENTRE) / BALL_RADIUS
     rad = abs(record["radius"] / BALL_RADIUS - 1)
     est = read_envmap(tmp_path / "env.hdr")
@@ -134,6 +137,7 @@ def test_envmap_from_ball_recovers_ball_and_map(ball_capture, tmp_path):
     assert err < 0.01 and rad < 0.03
     assert corr >= 0.9
     assert (tmp_path / "env.preview.png").is_file() and len(record["views"]) == 8
+    assert {v["circle_from"] for v in record["views"]} == {"circles file" if circles else "detected"}
 
 
 def _similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
