@@ -374,8 +374,8 @@ def _ball_views(model, images: Path, circles: dict[str, Circle] | None, config: 
     agree = int((chosen >= 0).sum())
     for path, cands, k in zip(paths, candidates, chosen):
         if k < 0:
-            what = (f"none of its {len(cands)} circles" if cands else "no circle found, and none") + \
-                f" fits the sphere {agree} other photos agree on" if agree >= 2 else "no two photos agree on a sphere"
+            what = ("no circle in it" if not cands else "no two photos agree on a sphere" if agree < 2 else
+                    f"none of its {len(cands)} circles is on the sphere the other {agree} photos agree on")
             raise LookingGlassError(f"mirror ball not found in this photo ({what}); give its circle in --circles "
                                     f"FILE: '{path.stem} cx cy r'", path)
     return [BallView(path, view, *flat[k][1:]) for path, view, k in zip(paths, views, chosen)]
