@@ -84,9 +84,14 @@ def _hough_candidates(image: np.ndarray, config: BallConfig, count: int = 12) ->
     small = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else grey
     small = cv2.GaussianBlur(small, (0, 0), 1.0)
     side = min(small.shape)
-    found = cv2.HoughCircles(small, cv2.HOUGH_GRADIENT_ALT, dp=1.5, minDist=2,
-                             param1=100, param2=0.5, minRadius=max(4, int(config.min_radius_frac * side)),
-                             maxRadius=int(config.max_radius_frac * side))
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)  # threaded, its order of equal-vote circles (and so which are returned) varies
+    try:
+        found = cv2.HoughCircles(small, cv2.HOUGH_GRADIENT_ALT, dp=1.5, minDist=2,
+                                 param1=100, param2=0.5, minRadius=max(4, int(config.min_radius_frac * side)),
+                                 maxRadius=int(config.max_radius_frac * side))
+    finally:
+        cv2.setNumThreads(threads)
     if found is None:
         return []
     return [(float(x) / scale + 0.5, float(y) / scale + 0.5, float(r) / scale) for x, y, r in found[0][:count]]
@@ -120,25 +125,30 @@ def refine_circle(image: np.ndarray, circle: Circle, config: BallConfig = BallCo
 
 
 def ball_candidates(image: np.ndarray, config: BallConfig = BallConfig()) -> list[tuple[Circle, float]]:
-    """Circles that may be the mirror ball in a photo (H, W, 3) linear: Hough's (up to
-    2 x config.max_candidates), each refined onto an outline (`refine_circle`), those with at least
-    30% support, duplicates (centre and radius within 10% of the radius) dropped; the best
-    config.max_candidates by score = support x radius (a ball mirrors round things into smaller circles
-    inside its own outline, whose edges can be sharper than the ball's rim), best first, with it."""
+    """Circles that may be the mirror ball in a photo (H, W, 3) linear, with their support (the
+    fraction of the outline found on them), best supported first: Hough's (up to
+    4 x config.max_candidates), each refined onto an outline (`refine_circle`), those with at least
+    30% support, duplicates (centre and radius within 10% of the radius) dropped, the best
+    config.max_candidates kept."""
     kept: list[tuple[Circle, float]] = []
-    for circle in _hough_candidates(image, config, 2 * config.max_candidates):
+    for circle in _hough_candidates(image, config, 4 * config.max_candidates):
         circle, support = refine_circle(image, circle, config)
-        if support < 0.3 or any(max(abs(circle[0] - o[0]), abs(circle[1] - o[1]), abs(circle[2] - o[2])) < 0.1 * o[2]
-                                for o, _ in kept):
-            continue
-        kept.append((circle, support * circle[2]))
-    return sorted(kept, key=lambda cs: -cs[1])[:config.max_candidates]
+        if support >= 0.3:
+            kept.append((circle, support))
+    kept.sort(key=lambda cs: -cs[1])
+    unique: list[tuple[Circle, float]] = []
+    for circle, support in kept:  # a few dozen circles
+        if all(max(abs(circle[0] - o[0]), abs(circle[1] - o[1]), abs(circle[2] - o[2])) >= 0.1 * o[2] for o, _ in unique):
+            unique.append((circle, support))
+    return unique[:config.max_candidates]
 
 
 def detect_ball(image: np.ndarray, config: BallConfig = BallConfig()) -> Circle | None:
-    """The best of a photo's `ball_candidates` alone (no other view to agree with), or None."""
+    """The ball in a photo alone (no other view to agree with), or None: of its `ball_candidates`, the
+    one with the largest support x radius (a ball mirrors round things into smaller circles inside
+    its own outline, whose edges can be sharper than the ball's rim)."""
     found = ball_candidates(image, config)
-    return found[0][0] if found else None
+    return max(found, key=lambda cs: cs[1] * cs[0][2])[0] if found else None
 
 
 def circle_cone(view: ColmapView, circle: Circle, samples: int = 32) -> tuple[np.ndarray, float]:

@@ -77,7 +77,7 @@ class BallConfig:
                                      range=(0.01, 0.5))
     max_candidates: int = setting(8, "Circles kept per photo as the ball's candidates (one is chosen by all views' "
                                      "agreement).", range=(1, 64))
-    consistency: float = setting(0.05, "A circle is on the ball's sphere when its centre and radius are within this "
+    consistency: float = setting(0.1, "A circle is on the ball's sphere when its centre and radius are within this "
                                        "fraction of its radius (at least 2 px) of the sphere's.", range=(0.001, 1))
     max_residual_px: float = setting(3.0, "A view's outline off the fitted sphere by more (RMS px) is an error.",
                                      range=(0, None))
