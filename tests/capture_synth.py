@@ -21,6 +21,8 @@ from scipy.spatial.transform import Rotation
 from lookingglass.physics.camera import Cameras
 from lookingglass.physics.environment import EnvironmentMap
 
+OBJECT_CENTRE, OBJECT_RADIUS = (0.0, -0.1, 0.0), 0.3  # the glass sphere of `capture_shoot`, and its ball
+
 
 def colmap_camera(cameras: Cameras, k: float) -> pycolmap.Camera:
     """The SIMPLE_RADIAL camera with `cameras`' (shared) focal length and size, centred, distortion k."""
@@ -177,3 +179,41 @@ def log_luminance_correlation(a: np.ndarray, b: np.ndarray, valid: np.ndarray | 
     ma, mb = (w * la).sum() / w.sum(), (w * lb).sum() / w.sum()
     cov = (w * (la - ma) * (lb - mb)).sum()
     return float(cov / math.sqrt((w * (la - ma) ** 2).sum() * (w * (lb - mb) ** 2).sum()))
+
+
+def capture_shoot(root: Path, num_views: int = 16, ball_views: tuple[int, ...] = (2, 5, 10, 13), width: int = 640,
+                  height: int = 480, k: float = -0.05, seed: int = 4) -> dict:
+    """A whole shoot as a user brings it to `lookingglass capture`: a glass sphere on a textured table in
+    a room papered with discs and boxes (a trap for a circle detector), photographed by `num_views`
+    SIMPLE_RADIAL cameras (distortion k) at two heights; the views in `ball_views` see a mirror ball
+    (reflectance 0.8) where the object stands instead. Writes ROOT/photos/obj_NN.png, masks/obj_NN.png,
+    ball/ball_NN.exr. Returns the truth: cams (all views), object and ball view indices, the object's
+    mesh, the environment map (the ball's and the object's light, true frame)."""
+    import trimesh
+
+    from lookingglass.capture.images import write_image, write_mask
+    from lookingglass.data.envmaps import procedural_envmap
+    from lookingglass.render.raycast import object_masks
+    from lookingglass.render.tracer import RenderConfig, render_views
+
+    env = procedural_envmap(np.random.default_rng(7), 64)
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=OBJECT_RADIUS).apply_translation(OBJECT_CENTRE)
+    cams = look_at_rig(num_views, seed, 2.5, width, height, fov_x_deg=60, heights=(35.0, 15.0))
+    ball_idx = [i for i in range(num_views) if i in ball_views]
+    obj_idx = [i for i in range(num_views) if i not in ball_idx]
+    room = room_photos(cams)
+    glass = render_views(mesh, EnvironmentMap(torch.from_numpy(env)), cams.select(obj_idx).to(dtype=torch.float32),
+                         RenderConfig(samples_per_axis=1, threads=1))
+    masks = glass.mask.numpy()
+    photos = np.where(masks[..., None], glass.image.numpy(), room[obj_idx])
+    balls = mirror_ball_photos(env, cams.select(ball_idx), OBJECT_CENTRE, OBJECT_RADIUS, 0.8, samples_per_axis=1)
+    ball_masks = object_masks(trimesh.creation.icosphere(subdivisions=4, radius=OBJECT_RADIUS)
+                              .apply_translation(OBJECT_CENTRE), cams.select(ball_idx))
+    balls = np.where(ball_masks[..., None], balls, room[ball_idx])
+    for i, img, m in zip(obj_idx, distort(photos, cams.select(obj_idx), k),
+                         distort(masks.astype(np.float32), cams.select(obj_idx), k) >= 0.5):
+        write_image(root / "photos" / f"obj_{i:02d}.png", img)
+        write_mask(root / "masks" / f"obj_{i:02d}.png", m)
+    for i, img in zip(ball_idx, distort(balls, cams.select(ball_idx), k)):
+        write_image(root / "ball" / f"ball_{i:02d}.exr", img)
+    return dict(cams=cams, obj_idx=obj_idx, ball_idx=ball_idx, mesh=mesh, env=env, masks=masks)

@@ -126,21 +126,20 @@ def refine_circle(image: np.ndarray, circle: Circle, config: BallConfig = BallCo
 
 def ball_candidates(image: np.ndarray, config: BallConfig = BallConfig()) -> list[tuple[Circle, float]]:
     """Circles that may be the mirror ball in a photo (H, W, 3) linear, with their support (the
-    fraction of the outline found on them), best supported first: Hough's (up to
-    4 x config.max_candidates), each refined onto an outline (`refine_circle`), those with at least
-    30% support, duplicates (centre and radius within 10% of the radius) dropped, the best
-    config.max_candidates kept."""
-    kept: list[tuple[Circle, float]] = []
-    for circle in _hough_candidates(image, config, 4 * config.max_candidates):
-        circle, support = refine_circle(image, circle, config)
-        if support >= 0.3:
-            kept.append((circle, support))
-    kept.sort(key=lambda cs: -cs[1])
+    fraction of the outline found on them): Hough's (up to 4 x config.max_candidates), each refined
+    onto an outline (`refine_circle`), those with at least 30% support, duplicates (centre and
+    radius within 10% of the radius) dropped; kept: the best half of config.max_candidates by support
+    and the best by support x radius (a ball mirrors round things into smaller, sharper circles
+    inside its own outline; a busy room has large faint ones)."""
+    refined = [refine_circle(image, c, config) for c in _hough_candidates(image, config, 4 * config.max_candidates)]
     unique: list[tuple[Circle, float]] = []
-    for circle, support in kept:  # a few dozen circles
-        if all(max(abs(circle[0] - o[0]), abs(circle[1] - o[1]), abs(circle[2] - o[2])) >= 0.1 * o[2] for o, _ in unique):
+    for circle, support in sorted(refined, key=lambda cs: -cs[1]):  # a few dozen circles
+        if support >= 0.3 and all(max(abs(circle[0] - o[0]), abs(circle[1] - o[1]), abs(circle[2] - o[2]))
+                                  >= 0.1 * o[2] for o, _ in unique):
             unique.append((circle, support))
-    return unique[:config.max_candidates]
+    half = (config.max_candidates + 1) // 2
+    by_size = sorted(unique, key=lambda cs: -cs[1] * cs[0][2])
+    return unique[:half] + [cs for cs in by_size if cs not in unique[:half]][:config.max_candidates - half]
 
 
 def detect_ball(image: np.ndarray, config: BallConfig = BallConfig()) -> Circle | None:
