@@ -250,10 +250,12 @@ def test_capture_end_to_end(tmp_path):
     and centres within 1% of the camera distance, the ball's centre within 3% of its radius (the
     camera centres' own error is up to 5% of it); the hull, mapped into the true frame, is within 50%
     (CD, see below) of the hull carved from the true cameras at the same settings; a rerun skips
-    every stage."""
+    every stage, and `sfm` rerun skips extraction and matching."""
     from capture_synth import OBJECT_CENTRE, OBJECT_RADIUS, capture_shoot
     from cli_helpers import run
+    from lookingglass.capture.sfm import run_sfm
     from lookingglass.presets import preset
+    from lookingglass.progress import Reporter
 
     truth = capture_shoot(tmp_path, 12, (2, 6, 9), 480, 360)
     args = ["capture", "--photos", tmp_path / "photos", "--ball", tmp_path / "ball", "--masks", tmp_path / "masks",
@@ -294,3 +296,7 @@ def test_capture_end_to_end(tmp_path):
     assert cd <= 1.5 * cd_true, (cd, cd_true)
     again = run(*args)
     assert again.stderr.count("skipped") == 4, again.stderr
+    # sfm on its own again: extraction and matching are not redone, the mapping is
+    reporter = Reporter(quiet=True)
+    record = run_sfm([tmp_path / "photos", tmp_path / "ball"], work / "sfm", tmp_path / "masks", reporter=reporter)
+    assert [st["name"] for st in reporter.stages] == ["mapping"] and record["unregistered"] == []
