@@ -168,6 +168,18 @@ def room_photos(cameras: Cameras, half_size: float = 4.0, seed: int = 0, samples
     return _supersampled(cameras.to(dtype=torch.float64), shade, samples_per_axis)
 
 
+def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Umeyama: s, R, t with dst ~ s R src + t (points (N, 3)), e.g. recovered camera centres onto
+    the true ones."""
+    ms, md = src.mean(0), dst.mean(0)
+    a, b = src - ms, dst - md
+    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
+    D = np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    s = np.trace(np.diag(S) @ D) / (a ** 2).sum(1).mean()
+    return s, R, md - s * R @ ms
+
+
 def log_luminance_correlation(a: np.ndarray, b: np.ndarray, valid: np.ndarray | None = None) -> float:
     """Pearson correlation of log luminance of two (H, 2H, 3) maps, solid-angle weighted, over `valid`."""
     lum = lambda x: np.log(np.maximum(x @ np.array([0.2126, 0.7152, 0.0722]), 1e-4))  # noqa: E731
