@@ -24,11 +24,17 @@ from lookingglass.physics.environment import EnvironmentMap
 OBJECT_CENTRE, OBJECT_RADIUS = (0.0, -0.1, 0.0), 0.3  # the glass sphere of `capture_shoot`, and its ball
 
 
-def colmap_camera(cameras: Cameras, k: float) -> pycolmap.Camera:
-    """The SIMPLE_RADIAL camera with `cameras`' (shared) focal length and size, centred, distortion k."""
-    f = cameras.width / (2 * float(cameras.tan_half_fov_x[0]))
+def colmap_camera(cameras: Cameras, k: float, view: int = 0) -> pycolmap.Camera:
+    """The SIMPLE_RADIAL camera of `cameras`' view `view`: its focal length and size, centred,
+    distortion k."""
+    f = cameras.width / (2 * float(cameras.tan_half_fov_x[view]))
     return pycolmap.Camera(model="SIMPLE_RADIAL", width=cameras.width, height=cameras.height,
                            params=[f, cameras.width / 2, cameras.height / 2, k])
+
+
+def _per_view(k, cameras: Cameras) -> list[float]:
+    """A distortion per view: k itself when it is one number (one shared camera)."""
+    return [float(k)] * cameras.num_views if np.ndim(k) == 0 else [float(v) for v in k]
 
 
 def cam_from_world(cameras: Cameras) -> tuple[np.ndarray, np.ndarray]:
@@ -39,36 +45,44 @@ def cam_from_world(cameras: Cameras) -> tuple[np.ndarray, np.ndarray]:
     return R, t
 
 
-def write_colmap_text(folder: Path, cameras: Cameras, names: list[str], k: float) -> Path:
-    """The true cameras as a COLMAP text model (one shared SIMPLE_RADIAL camera) in `folder`."""
+def write_colmap_text(folder: Path, cameras: Cameras, names: list[str], k) -> Path:
+    """The true cameras as a COLMAP text model in `folder`: one SIMPLE_RADIAL camera per distinct
+    (focal length, distortion) among the views (one shared camera when k is one number and the fovs
+    agree); k: distortion, one number or one per view."""
     folder.mkdir(parents=True, exist_ok=True)
-    cam = colmap_camera(cameras, k)
-    (folder / "cameras.txt").write_text("# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
-                                        f"1 SIMPLE_RADIAL {cam.width} {cam.height} "
-                                        + " ".join(f"{p:.12g}" for p in cam.params) + "\n")
+    cams = [colmap_camera(cameras, kv, i) for i, kv in enumerate(_per_view(k, cameras))]
+    ids: dict[tuple, int] = {}
+    for cam in cams:
+        ids.setdefault(tuple(np.round(cam.params, 9)), len(ids) + 1)
+    (folder / "cameras.txt").write_text("# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n" + "".join(
+        f"{i} SIMPLE_RADIAL {cameras.width} {cameras.height} " + " ".join(f"{p:.12g}" for p in params) + "\n"
+        for params, i in ids.items()))
     R, t = cam_from_world(cameras)
     lines = []
     for i, name in enumerate(names):
         x, y, z, w = Rotation.from_matrix(R[i]).as_quat()
         lines += [f"{i + 1} {w:.15g} {x:.15g} {y:.15g} {z:.15g} " + " ".join(f"{v:.15g}" for v in t[i])
-                  + f" 1 {name}", ""]
+                  + f" {ids[tuple(np.round(cams[i].params, 9))]} {name}", ""]
     (folder / "images.txt").write_text("\n".join(lines) + "\n")
     (folder / "points3D.txt").write_text("")
     return folder
 
 
-def distort(images: np.ndarray, cameras: Cameras, k: float) -> np.ndarray:
-    """Pinhole renders (V, H, W[, C]) of `cameras` as the SIMPLE_RADIAL camera with distortion k
-    sees them: each distorted pixel takes the pinhole image at its undistorted ray (bilinear)."""
-    cam = colmap_camera(cameras, k)
+def distort(images: np.ndarray, cameras: Cameras, k) -> np.ndarray:
+    """Pinhole renders (V, H, W[, C]) of `cameras` as SIMPLE_RADIAL cameras with distortion k (one
+    number, or one per view) see them: each distorted pixel takes the pinhole image at its
+    undistorted ray (bilinear)."""
     W, H = cameras.width, cameras.height
     ys, xs = np.mgrid[0:H, 0:W].astype(np.float64) + 0.5
-    norm = np.asarray(cam.cam_from_img(np.stack([xs.ravel(), ys.ravel()], -1)))  # (N, 2)
-    f = cam.params[0]
-    mx = (norm[:, 0] * f + W / 2 - 0.5).reshape(H, W).astype(np.float32)
-    my = (norm[:, 1] * f + H / 2 - 0.5).reshape(H, W).astype(np.float32)
-    return np.stack([cv2.remap(img.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-                     for img in images])
+    out = []
+    for view, (img, kv) in enumerate(zip(images, _per_view(k, cameras))):  # views, not pixels
+        cam = colmap_camera(cameras, kv, view)
+        norm = np.asarray(cam.cam_from_img(np.stack([xs.ravel(), ys.ravel()], -1)))  # (N, 2)
+        f = cam.params[0]
+        mx = (norm[:, 0] * f + W / 2 - 0.5).reshape(H, W).astype(np.float32)
+        my = (norm[:, 1] * f + H / 2 - 0.5).reshape(H, W).astype(np.float32)
+        out.append(cv2.remap(img.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
+    return np.stack(out)
 
 
 def look_at_rig(num_views: int, seed: int, distance: float, width: int, height: int, fov_x_deg: float = 55.0,

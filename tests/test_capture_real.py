@@ -22,6 +22,7 @@ from lookingglass.capture.scene import load_capture
 from lookingglass.data.envmaps import procedural_envmap
 from lookingglass.hull import HullConfig, carve_visual_hull
 from lookingglass.metrics import shape_metrics
+from lookingglass.physics.camera import Cameras
 from lookingglass.physics.environment import EnvironmentMap
 from lookingglass.render.raycast import object_masks
 from lookingglass.render.tracer import RenderConfig, render_views
@@ -91,6 +92,38 @@ def test_import_colmap_hull_matches_true_cameras(glass_capture, tmp_path):
     true = EnvironmentMap(torch.from_numpy(g["env"]).double()).lookup(d)
     scene = EnvironmentMap(torch.from_numpy(cap.envmap).double()).lookup(d @ torch.from_numpy(R).T)
     assert log_luminance_correlation(true.numpy()[None], scene.numpy()[None]) > 0.97
+
+
+def test_import_colmap_uses_each_camera_of_the_model(tmp_path):
+    """A COLMAP model whose photos come from two cameras of one size (fov 55 and 46 degrees,
+    distortion -0.06 and -0.01): each photo is undistorted with its own camera, the scene keeps each
+    view's fov, and the hull matches the one from the true cameras."""
+    torus = trimesh.creation.torus(major_radius=0.6, minor_radius=0.25)
+    rig = look_at_rig(8, 2, 3.4, 160, 120)
+    fov = np.where(np.arange(8) < 4, 55.0, 46.0)
+    k = np.where(np.arange(8) < 4, -0.06, -0.01)
+    p = rig.look_at_params()
+    cams = Cameras.look_at(p["origin"], p["target"], p["up"], fov, 160, 120, dtype=torch.float64)
+    masks = object_masks(torus, cams, samples_per_axis=2)
+    dmasks = distort(masks.astype(np.float32), cams, k)
+    for i, m in enumerate(dmasks):
+        write_image(tmp_path / "photos" / f"V{i}.png", np.repeat(m[..., None], 3, -1) * 0.8 + 0.1)
+        write_mask(tmp_path / "masks" / f"V{i}.png", m >= 0.5)
+    write_image(tmp_path / "env.hdr", np.ones((16, 32, 3), np.float32))
+    write_colmap_text(tmp_path / "model", cams, [f"V{i}.png" for i in range(8)], k)
+    model = read_model(tmp_path / "model")
+    assert len({tuple(v.camera.params) for v in model.views}) == 2
+    import_colmap(tmp_path / "model", tmp_path / "photos", tmp_path / "masks", tmp_path / "env.hdr", tmp_path / "scene")
+    cap = load_capture(tmp_path / "scene")
+    assert np.allclose([v.fov_x_deg for v in cap.spec.views], fov, atol=1e-6)
+    R = np.array(json.loads((tmp_path / "scene" / IMPORT_FILE).read_text())["world_from_model"]["rotation"])
+    c = np.array(json.loads((tmp_path / "scene" / IMPORT_FILE).read_text())["world_from_model"]["centre"])
+    gt_scene = torus.copy().apply_translation(-c).apply_transform(np.block([[R, np.zeros((3, 1))],
+                                                                             [np.zeros((1, 3)), np.ones((1, 1))]]))
+    cd_true = shape_metrics(carve_visual_hull(masks, cams.to(dtype=torch.float32), HULL).mesh, torus, samples=5000)["cd"]
+    cd = shape_metrics(carve_visual_hull(cap.masks, cap.cameras, HULL).mesh, gt_scene, samples=5000)["cd"]
+    print(f"two cameras: hull CD x1e4 {cd:.2f} against {cd_true:.2f} from the true cameras")
+    assert cd <= 1.1 * cd_true, (cd, cd_true)
 
 
 BALL_CENTRE, BALL_RADIUS = np.array([0.2, 0.9, -0.1]), 0.25
