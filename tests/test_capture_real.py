@@ -167,7 +167,7 @@ def test_envmap_from_ball_recovers_ball_and_map(ball_capture, tmp_path, circles)
     residuals = [v["residual_px"] for v in record["views"]]
     print(f"ball centre error {100 * err:.2f}% of r, radius error {100 * rad:.2f}%, envmap log-lum corr {corr:.3f}, "
           f"residuals px {np.round(residuals, 2).tolist()}")
-    assert err < 0.01 and rad < 0.03
+    assert err < 0.01 and rad < 0.015
     assert corr >= 0.9
     assert (tmp_path / "env.preview.png").is_file() and len(record["views"]) == 8
     assert {v["circle_from"] for v in record["views"]} == {"circles file" if circles else "detected"}
@@ -176,7 +176,8 @@ def test_envmap_from_ball_recovers_ball_and_map(ball_capture, tmp_path, circles)
 def test_ball_found_among_decoys(ball_capture, tmp_path):
     """Each ball photo gets three discs drawn beside the ball, larger and sharper-edged than it (the
     single-photo detector takes a disc in some photos): the calibration still finds the ball in every
-    photo, and a photo whose ball is painted over is refused by name."""
+    photo; a photo whose ball is painted over, or whose clicked circle is off the ball, is refused by
+    name."""
     from lookingglass.capture.ball import detect_ball, envmap_from_ball, read_circles
     from lookingglass.errors import LookingGlassError
 
@@ -215,6 +216,12 @@ def test_ball_found_among_decoys(ball_capture, tmp_path):
     with pytest.raises(LookingGlassError, match="mirror ball not found in this photo") as caught:
         envmap_from_ball(root / "model", tmp_path / "ball", tmp_path / "env2.hdr", size=(64, 32))
     assert "ball_3.exr" in str(caught.value) and not (tmp_path / "env2.hdr").exists()
+    # a clicked circle off the ball (the others right) is named too
+    (tmp_path / "circles.txt").write_text("".join(f"{n} {cx + 25 * (n == 'ball_5')} {cy} {r}\n"
+                                                  for n, (cx, cy, r) in truth.items()))
+    with pytest.raises(LookingGlassError, match="circle in the circles file is not on the sphere") as caught:
+        envmap_from_ball(root / "model", root / "ball", tmp_path / "env3.hdr", circles=tmp_path / "circles.txt")
+    assert "ball_5.exr" in str(caught.value)
 
 
 def test_cli_envmap_from_ball_then_import_colmap(ball_capture, glass_capture, tmp_path):
@@ -312,9 +319,9 @@ def test_capture_end_to_end(tmp_path):
     assert ball_err < 0.03 and max(v["residual_px"] for v in ball_fit["views"]) < 3.0
     # 50%, not the issue's 10%: through the same import path the true cameras give a hull within 1%
     # of theirs (and test_import_colmap_hull_matches_true_cameras: within 4% at 64^3); what is left is
-    # the SfM poses' error (0.17-0.22 deg, centres 0.5-0.8% of the camera distance: ~0.5 px in these
-    # 160x120 masks, where the object's radius is 17 px), measured +16%, +18%, +24% in three runs
-    # (SfM's threads make it vary from run to run)
+    # the SfM poses' error (0.16-0.22 deg, centres 0.5-0.8% of the camera distance: ~0.5 px in these
+    # 160x120 masks, where the object's radius is 17 px), measured +16% to +27% in five runs (SfM's
+    # threads make it vary from run to run)
     assert cd <= 1.5 * cd_true, (cd, cd_true)
     reporter = Reporter(quiet=True)
     reporter.info = lambda message: reporter.stages.append({"name": "info", "message": message})

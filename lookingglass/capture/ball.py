@@ -382,6 +382,9 @@ def _ball_views(model, images: Path, circles: dict[str, Circle] | None, config: 
                                      np.array([h for _, h in cones]), np.array([v for v, _, _ in flat]), tolerance)
     agree = int((chosen >= 0).sum())
     for path, cands, k in zip(paths, candidates, chosen):
+        if k < 0 and cands and cands[0][1] == "circles file":
+            raise LookingGlassError(f"this photo's circle in the circles file is not on the sphere the other {agree} "
+                                    "photos agree on (a wrong circle, or a pose that does not fit)", path)
         if k < 0:
             what = ("no circle in it" if not cands else "no two photos agree on a sphere" if agree < 2 else
                     f"none of its {len(cands)} circles is on the sphere the other {agree} photos agree on")
