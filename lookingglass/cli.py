@@ -38,8 +38,8 @@ GENERATE_OPTIONS = ConfigOptions("dataset", exclude=frozenset({"preset", "hull.n
 TRAIN_NORMALS_OPTIONS = ConfigOptions("normal_training", aliases={"net.num_views": "--views"}, exclude=frozenset(
     {"net.width", "net.height", "net.use_error_map", "net.use_cost_volume"}))
 TRAIN_POINTS_OPTIONS = ConfigOptions("point_training")
-SFM_OPTIONS = ConfigOptions("capture", exclude=frozenset({"ball"}))
-BALL_OPTIONS = ConfigOptions("capture", exclude=frozenset({"sfm"}))
+SFM_OPTIONS = ConfigOptions("capture", exclude=frozenset({"ball", "stop_after"}))
+BALL_OPTIONS = ConfigOptions("capture", exclude=frozenset({"sfm", "stop_after"}))
 CAPTURE_OPTIONS = ConfigOptions("capture")
 EVAL_SHAPES_OPTIONS = ConfigOptions("pipeline", only=frozenset({"surface.points"}),
                                     aliases={"surface.points": "--surface-points"})

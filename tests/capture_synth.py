@@ -21,12 +21,20 @@ from scipy.spatial.transform import Rotation
 from lookingglass.physics.camera import Cameras
 from lookingglass.physics.environment import EnvironmentMap
 
+OBJECT_CENTRE, OBJECT_RADIUS = (0.0, -0.1, 0.0), 0.3  # the glass sphere of `capture_shoot`, and its ball
 
-def colmap_camera(cameras: Cameras, k: float) -> pycolmap.Camera:
-    """The SIMPLE_RADIAL camera with `cameras`' (shared) focal length and size, centred, distortion k."""
-    f = cameras.width / (2 * float(cameras.tan_half_fov_x[0]))
+
+def colmap_camera(cameras: Cameras, k: float, view: int = 0) -> pycolmap.Camera:
+    """The SIMPLE_RADIAL camera of `cameras`' view `view`: its focal length and size, centred,
+    distortion k."""
+    f = cameras.width / (2 * float(cameras.tan_half_fov_x[view]))
     return pycolmap.Camera(model="SIMPLE_RADIAL", width=cameras.width, height=cameras.height,
                            params=[f, cameras.width / 2, cameras.height / 2, k])
+
+
+def _per_view(k, cameras: Cameras) -> list[float]:
+    """A distortion per view: k itself when it is one number (one shared camera)."""
+    return [float(k)] * cameras.num_views if np.ndim(k) == 0 else [float(v) for v in k]
 
 
 def cam_from_world(cameras: Cameras) -> tuple[np.ndarray, np.ndarray]:
@@ -37,36 +45,44 @@ def cam_from_world(cameras: Cameras) -> tuple[np.ndarray, np.ndarray]:
     return R, t
 
 
-def write_colmap_text(folder: Path, cameras: Cameras, names: list[str], k: float) -> Path:
-    """The true cameras as a COLMAP text model (one shared SIMPLE_RADIAL camera) in `folder`."""
+def write_colmap_text(folder: Path, cameras: Cameras, names: list[str], k) -> Path:
+    """The true cameras as a COLMAP text model in `folder`: one SIMPLE_RADIAL camera per distinct
+    (focal length, distortion) among the views (one shared camera when k is one number and the fovs
+    agree); k: distortion, one number or one per view."""
     folder.mkdir(parents=True, exist_ok=True)
-    cam = colmap_camera(cameras, k)
-    (folder / "cameras.txt").write_text("# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
-                                        f"1 SIMPLE_RADIAL {cam.width} {cam.height} "
-                                        + " ".join(f"{p:.12g}" for p in cam.params) + "\n")
+    cams = [colmap_camera(cameras, kv, i) for i, kv in enumerate(_per_view(k, cameras))]
+    ids: dict[tuple, int] = {}
+    for cam in cams:
+        ids.setdefault(tuple(np.round(cam.params, 9)), len(ids) + 1)
+    (folder / "cameras.txt").write_text("# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n" + "".join(
+        f"{i} SIMPLE_RADIAL {cameras.width} {cameras.height} " + " ".join(f"{p:.12g}" for p in params) + "\n"
+        for params, i in ids.items()))
     R, t = cam_from_world(cameras)
     lines = []
     for i, name in enumerate(names):
         x, y, z, w = Rotation.from_matrix(R[i]).as_quat()
         lines += [f"{i + 1} {w:.15g} {x:.15g} {y:.15g} {z:.15g} " + " ".join(f"{v:.15g}" for v in t[i])
-                  + f" 1 {name}", ""]
+                  + f" {ids[tuple(np.round(cams[i].params, 9))]} {name}", ""]
     (folder / "images.txt").write_text("\n".join(lines) + "\n")
     (folder / "points3D.txt").write_text("")
     return folder
 
 
-def distort(images: np.ndarray, cameras: Cameras, k: float) -> np.ndarray:
-    """Pinhole renders (V, H, W[, C]) of `cameras` as the SIMPLE_RADIAL camera with distortion k
-    sees them: each distorted pixel takes the pinhole image at its undistorted ray (bilinear)."""
-    cam = colmap_camera(cameras, k)
+def distort(images: np.ndarray, cameras: Cameras, k) -> np.ndarray:
+    """Pinhole renders (V, H, W[, C]) of `cameras` as SIMPLE_RADIAL cameras with distortion k (one
+    number, or one per view) see them: each distorted pixel takes the pinhole image at its
+    undistorted ray (bilinear)."""
     W, H = cameras.width, cameras.height
     ys, xs = np.mgrid[0:H, 0:W].astype(np.float64) + 0.5
-    norm = np.asarray(cam.cam_from_img(np.stack([xs.ravel(), ys.ravel()], -1)))  # (N, 2)
-    f = cam.params[0]
-    mx = (norm[:, 0] * f + W / 2 - 0.5).reshape(H, W).astype(np.float32)
-    my = (norm[:, 1] * f + H / 2 - 0.5).reshape(H, W).astype(np.float32)
-    return np.stack([cv2.remap(img.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-                     for img in images])
+    out = []
+    for view, (img, kv) in enumerate(zip(images, _per_view(k, cameras))):  # views, not pixels
+        cam = colmap_camera(cameras, kv, view)
+        norm = np.asarray(cam.cam_from_img(np.stack([xs.ravel(), ys.ravel()], -1)))  # (N, 2)
+        f = cam.params[0]
+        mx = (norm[:, 0] * f + W / 2 - 0.5).reshape(H, W).astype(np.float32)
+        my = (norm[:, 1] * f + H / 2 - 0.5).reshape(H, W).astype(np.float32)
+        out.append(cv2.remap(img.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
+    return np.stack(out)
 
 
 def look_at_rig(num_views: int, seed: int, distance: float, width: int, height: int, fov_x_deg: float = 55.0,
@@ -166,6 +182,18 @@ def room_photos(cameras: Cameras, half_size: float = 4.0, seed: int = 0, samples
     return _supersampled(cameras.to(dtype=torch.float64), shade, samples_per_axis)
 
 
+def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Umeyama: s, R, t with dst ~ s R src + t (points (N, 3)), e.g. recovered camera centres onto
+    the true ones."""
+    ms, md = src.mean(0), dst.mean(0)
+    a, b = src - ms, dst - md
+    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
+    D = np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    s = np.trace(np.diag(S) @ D) / (a ** 2).sum(1).mean()
+    return s, R, md - s * R @ ms
+
+
 def log_luminance_correlation(a: np.ndarray, b: np.ndarray, valid: np.ndarray | None = None) -> float:
     """Pearson correlation of log luminance of two (H, 2H, 3) maps, solid-angle weighted, over `valid`."""
     lum = lambda x: np.log(np.maximum(x @ np.array([0.2126, 0.7152, 0.0722]), 1e-4))  # noqa: E731
@@ -177,3 +205,41 @@ def log_luminance_correlation(a: np.ndarray, b: np.ndarray, valid: np.ndarray | 
     ma, mb = (w * la).sum() / w.sum(), (w * lb).sum() / w.sum()
     cov = (w * (la - ma) * (lb - mb)).sum()
     return float(cov / math.sqrt((w * (la - ma) ** 2).sum() * (w * (lb - mb) ** 2).sum()))
+
+
+def capture_shoot(root: Path, num_views: int = 16, ball_views: tuple[int, ...] = (2, 5, 10, 13), width: int = 640,
+                  height: int = 480, k: float = -0.05, seed: int = 4) -> dict:
+    """A whole shoot as a user brings it to `lookingglass capture`: a glass sphere on a textured table in
+    a room papered with discs and boxes (a trap for a circle detector), photographed by `num_views`
+    SIMPLE_RADIAL cameras (distortion k) at two heights; the views in `ball_views` see a mirror ball
+    (reflectance 0.8) where the object stands instead. Writes ROOT/photos/obj_NN.png, masks/obj_NN.png,
+    ball/ball_NN.exr. Returns the truth: cams (all views), object and ball view indices, the object's
+    mesh, the environment map (the ball's and the object's light, true frame)."""
+    import trimesh
+
+    from lookingglass.capture.images import write_image, write_mask
+    from lookingglass.data.envmaps import procedural_envmap
+    from lookingglass.render.raycast import object_masks
+    from lookingglass.render.tracer import RenderConfig, render_views
+
+    env = procedural_envmap(np.random.default_rng(7), 64)
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=OBJECT_RADIUS).apply_translation(OBJECT_CENTRE)
+    cams = look_at_rig(num_views, seed, 2.5, width, height, fov_x_deg=60, heights=(35.0, 15.0))
+    ball_idx = [i for i in range(num_views) if i in ball_views]
+    obj_idx = [i for i in range(num_views) if i not in ball_idx]
+    room = room_photos(cams)
+    glass = render_views(mesh, EnvironmentMap(torch.from_numpy(env)), cams.select(obj_idx).to(dtype=torch.float32),
+                         RenderConfig(samples_per_axis=1, threads=1))
+    masks = glass.mask.numpy()
+    photos = np.where(masks[..., None], glass.image.numpy(), room[obj_idx])
+    balls = mirror_ball_photos(env, cams.select(ball_idx), OBJECT_CENTRE, OBJECT_RADIUS, 0.8, samples_per_axis=1)
+    ball_masks = object_masks(trimesh.creation.icosphere(subdivisions=4, radius=OBJECT_RADIUS)
+                              .apply_translation(OBJECT_CENTRE), cams.select(ball_idx))
+    balls = np.where(ball_masks[..., None], balls, room[ball_idx])
+    for i, img, m in zip(obj_idx, distort(photos, cams.select(obj_idx), k),
+                         distort(masks.astype(np.float32), cams.select(obj_idx), k) >= 0.5):
+        write_image(root / "photos" / f"obj_{i:02d}.png", img)
+        write_mask(root / "masks" / f"obj_{i:02d}.png", m)
+    for i, img in zip(ball_idx, distort(balls, cams.select(ball_idx), k)):
+        write_image(root / "ball" / f"ball_{i:02d}.exr", img)
+    return dict(cams=cams, obj_idx=obj_idx, ball_idx=ball_idx, mesh=mesh, env=env, masks=masks)

@@ -1,10 +1,16 @@
 """The environment map from photos of a mirror ball (`lookingglass envmap-from-ball`).
 
 1. **Find the ball** in each photo: the user's circle (`--circles FILE`, one `stem cx cy r` line
-   each, pixels of the photo as shot, centre of the top-left pixel at (0.5, 0.5)) or OpenCV's Hough
-   transform (`cv2.HOUGH_GRADIENT_ALT`, the strongest circle). The outline is then located to a
-   fraction of a pixel along `edge_samples` radial profiles (the steepest brightness step within
-   `edge_search` x r of the circle).
+   each, pixels of the photo as shot, centre of the top-left pixel at (0.5, 0.5)) or, by the
+   calibration: each photo's candidate circles (OpenCV's Hough transform, `cv2.HOUGH_GRADIENT_ALT`,
+   each refined onto an outline and scored), then the one sphere that most views agree on (every
+   pair of candidates in two views triangulates a sphere from their cones of rays; the sphere with a
+   candidate within `consistency` in the most views wins), and per photo its candidate on that
+   sphere; a photo with none is refused by name. Discs in the room and circles mirrored inside the
+   ball fit no sphere the other views see. The outline is then located to a fraction of a pixel
+   along `edge_samples` radial profiles (the outermost clear brightness step within `edge_search` x
+   r of the circle: inside the rim the ball shows the room squeezed, with steeper steps than the
+   rim's own).
 2. **Triangulate the sphere** from the calibrated views (COLMAP model): every outline point gives
    a ray tangent to the ball (undistorted with the model's own camera equations), and the centre C
    and radius rho minimise the angular misfit asin(|(C - O) x d| / |C - O|) - asin(rho / |C - O|)
@@ -70,7 +76,7 @@ def _grey8(image: np.ndarray) -> np.ndarray:
     return np.round(linear_to_srgb(lum / max(float(np.percentile(lum, 99.5)), 1e-6)) * 255).astype(np.uint8)
 
 
-def _hough_candidates(image: np.ndarray, config: BallConfig) -> list[Circle]:
+def _hough_candidates(image: np.ndarray, config: BallConfig, count: int = 12) -> list[Circle]:
     """Circles of the photo (H, W, 3) linear with radii in the configured range, strongest first
     (Hough on a copy scaled to at most 1024 px). Continuous pixel coordinates."""
     grey = _grey8(image)
@@ -78,12 +84,17 @@ def _hough_candidates(image: np.ndarray, config: BallConfig) -> list[Circle]:
     small = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else grey
     small = cv2.GaussianBlur(small, (0, 0), 1.0)
     side = min(small.shape)
-    found = cv2.HoughCircles(small, cv2.HOUGH_GRADIENT_ALT, dp=1.5, minDist=2,
-                             param1=100, param2=0.5, minRadius=max(4, int(config.min_radius_frac * side)),
-                             maxRadius=int(config.max_radius_frac * side))
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)  # threaded, its order of equal-vote circles (and so which are returned) varies
+    try:
+        found = cv2.HoughCircles(small, cv2.HOUGH_GRADIENT_ALT, dp=1.5, minDist=2,
+                                 param1=100, param2=0.5, minRadius=max(4, int(config.min_radius_frac * side)),
+                                 maxRadius=int(config.max_radius_frac * side))
+    finally:
+        cv2.setNumThreads(threads)
     if found is None:
         return []
-    return [(float(x) / scale + 0.5, float(y) / scale + 0.5, float(r) / scale) for x, y, r in found[0][:12]]
+    return [(float(x) / scale + 0.5, float(y) / scale + 0.5, float(r) / scale) for x, y, r in found[0][:count]]
 
 
 def fit_circle(points: np.ndarray) -> Circle:
@@ -113,14 +124,89 @@ def refine_circle(image: np.ndarray, circle: Circle, config: BallConfig = BallCo
     return circle, support
 
 
+def ball_candidates(image: np.ndarray, config: BallConfig = BallConfig()) -> list[tuple[Circle, float]]:
+    """Circles that may be the mirror ball in a photo (H, W, 3) linear, with their support (the
+    fraction of the outline found on them): Hough's (up to 4 x config.max_candidates), each refined
+    onto an outline (`refine_circle`), those with at least 30% support, duplicates (centre and
+    radius within 10% of the radius) dropped; kept: the best half of config.max_candidates by support
+    and the best by support x radius (a ball mirrors round things into smaller, sharper circles
+    inside its own outline; a busy room has large faint ones)."""
+    refined = [refine_circle(image, c, config) for c in _hough_candidates(image, config, 4 * config.max_candidates)]
+    unique: list[tuple[Circle, float]] = []
+    for circle, support in sorted(refined, key=lambda cs: -cs[1]):  # a few dozen circles
+        if support >= 0.3 and all(max(abs(circle[0] - o[0]), abs(circle[1] - o[1]), abs(circle[2] - o[2]))
+                                  >= 0.1 * o[2] for o, _ in unique):
+            unique.append((circle, support))
+    half = (config.max_candidates + 1) // 2
+    by_size = sorted(unique, key=lambda cs: -cs[1] * cs[0][2])
+    return unique[:half] + [cs for cs in by_size if cs not in unique[:half]][:config.max_candidates - half]
+
+
 def detect_ball(image: np.ndarray, config: BallConfig = BallConfig()) -> Circle | None:
-    """The mirror ball in a photo (H, W, 3) linear, or None: Hough's candidates, each refined onto an
-    outline (`refine_circle`), scored by support x radius (a ball mirrors round things into smaller
-    circles inside its own outline, whose edges can be sharper than the ball's rim); candidates
-    with less than 30% support are not taken."""
-    refined = [(c, s) for c, s in (refine_circle(image, c, config) for c in _hough_candidates(image, config))
-               if s >= 0.3]
-    return max(refined, key=lambda cs: cs[1] * cs[0][2])[0] if refined else None
+    """The ball in a photo alone (no other view to agree with), or None: of its `ball_candidates`, the
+    one with the largest support x radius (a ball mirrors round things into smaller circles inside
+    its own outline, whose edges can be sharper than the ball's rim)."""
+    found = ball_candidates(image, config)
+    return max(found, key=lambda cs: cs[1] * cs[0][2])[0] if found else None
+
+
+def circle_cone(view: ColmapView, circle: Circle, samples: int = 32) -> tuple[np.ndarray, float]:
+    """The cone of rays (model frame) through a circle of the photo (lens distortion undone): its unit
+    axis (3,) (mean of the rays) and half-angle (radians, their mean angle to it). A sphere seen by
+    the camera is such a cone, its axis through the centre, sin(half-angle) = radius / distance."""
+    theta = np.linspace(0, 2 * np.pi, samples, endpoint=False)
+    pts = np.stack([circle[0] + circle[2] * np.cos(theta), circle[1] + circle[2] * np.sin(theta)], -1)
+    rays = tangent_rays(view, pts)
+    axis = rays.mean(axis=0)
+    axis /= np.linalg.norm(axis)
+    return axis, float(np.arccos(np.clip(rays @ axis, -1, 1)).mean())
+
+
+def consistent_sphere(origins: np.ndarray, axes: np.ndarray, half: np.ndarray, view_of: np.ndarray,
+                      tolerance: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """The one sphere most views agree on, from candidate cones (`circle_cone`) of V views.
+
+    origins (V, 3): camera centres; axes (N, 3), half (N,) radians: every candidate's cone; view_of (N,)
+    int: its view; tolerance (N,) radians: how far (axis angle + half-angle difference) a candidate
+    may lie from a sphere's cone and still see it. Every pair of candidates in two views gives a
+    sphere (its centre where the two axes pass closest, radius from the half-angles; pairs whose axes
+    miss each other or whose radii disagree by more than the tolerance are dropped); the sphere with
+    the most views holding a candidate within tolerance wins (ties: the least summed misfit).
+    Returns the chosen candidate per view (V,) int (-1: none fits), the centre (3,) and radius."""
+    V = len(origins)
+    O = origins[view_of]
+    i, j = np.triu_indices(len(axes), 1)
+    keep = view_of[i] != view_of[j]
+    i, j = i[keep], j[keep]
+    # closest points of the axis lines O_i + s a_i and O_j + t a_j
+    a, b, w = axes[i], axes[j], O[i] - O[j]
+    ab, aw, bw = (a * b).sum(-1), (a * w).sum(-1), (b * w).sum(-1)
+    den = np.maximum(1 - ab ** 2, 1e-12)
+    s, t = (ab * bw - aw) / den, (bw - ab * aw) / den
+    pi, pj = O[i] + s[:, None] * a, O[j] + t[:, None] * b
+    centre = (pi + pj) / 2
+    rho_i = np.linalg.norm(centre - O[i], axis=1) * np.sin(half[i])
+    rho_j = np.linalg.norm(centre - O[j], axis=1) * np.sin(half[j])
+    rho = (rho_i + rho_j) / 2
+    near = np.minimum(np.linalg.norm(centre - O[i], axis=1), np.linalg.norm(centre - O[j], axis=1))
+    tol = np.minimum(tolerance[i], tolerance[j])
+    ok = ((s > 0) & (t > 0) & (ab < 1 - 1e-9) & (np.linalg.norm(pi - pj, axis=1) < near * tol)
+          & (np.abs(rho_i - rho_j) < near * tol))
+    if not ok.any():
+        return np.full(V, -1), np.full(3, np.nan), float("nan")
+    centre, rho = centre[ok], rho[ok]
+    rel = centre[:, None] - O[None]  # (M, N, 3)
+    dist = np.linalg.norm(rel, axis=-1)
+    axis_err = np.arccos(np.clip((rel * axes[None]).sum(-1) / dist, -1, 1))
+    misfit = axis_err + np.abs(np.arcsin(np.clip(rho[:, None] / dist, 0, 1)) - half[None])
+    misfit = np.where(dist > rho[:, None], misfit, np.inf) / tolerance[None]  # in tolerances
+    members = [np.flatnonzero(view_of == v) for v in range(V)]  # V views, not pixels
+    best = np.stack([misfit[:, m].min(1) if len(m) else np.full(len(centre), np.inf) for m in members], 1)
+    seen = best <= 1  # (M, V)
+    score = seen.sum(1) - np.where(seen, best, 0).sum(1) / (V + 1)  # more views first, then less misfit
+    h = int(np.argmax(score))
+    chosen = np.array([m[int(np.argmin(misfit[h, m]))] if seen[h, v] else -1 for v, m in enumerate(members)])
+    return chosen, centre[h], float(rho[h])
 
 
 def outline_points(image: np.ndarray, circle: Circle, config: BallConfig = BallConfig(),
@@ -139,11 +225,16 @@ def outline_points(image: np.ndarray, circle: Circle, config: BallConfig = BallC
     ys = (cy + np.sin(theta)[:, None] * radii[None]).astype(np.float32)
     profile = cv2.remap(grey, xs - 0.5, ys - 0.5, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     grad = np.abs(np.gradient(profile, axis=1))
-    # the centroid of the gradient's upper half within 1.5 px of its peak: a box-filtered edge,
-    # resampled bilinearly, has a flat-topped gradient whose argmax alone sits on its inner side
-    k = grad.argmax(axis=1)
+    # the outermost clear step (a local peak >= 1/3 of the profile's steepest): inside its outline a
+    # mirror ball shows the room squeezed towards the rim, whose steps are often steeper than the rim's
     rows = np.arange(len(theta))
+    peak = np.zeros_like(grad, dtype=bool)
+    peak[:, 1:-1] = (grad[:, 1:-1] >= grad[:, :-2]) & (grad[:, 1:-1] >= grad[:, 2:])
+    strong = peak & (grad >= grad.max(axis=1, keepdims=True) / 3)
+    k = np.where(strong.any(axis=1), grad.shape[1] - 1 - strong[:, ::-1].argmax(axis=1), grad.argmax(axis=1))
     strength = grad[rows, k]
+    # the centroid of the gradient's upper half within 1.5 px of that peak: a box-filtered edge,
+    # resampled bilinearly, has a flat-topped gradient whose argmax alone sits on its inner side
     window = np.abs(np.arange(len(radii))[None] - k[:, None]) <= int(round(1.5 / step))
     weight = np.where(window, np.clip(grad - 0.5 * strength[:, None], 0, None), 0.0)
     rad = (weight * radii[None]).sum(axis=1) / np.maximum(weight.sum(axis=1), 1e-12)
@@ -259,31 +350,47 @@ class BallView:
 
 def _ball_views(model, images: Path, circles: dict[str, Circle] | None, config: BallConfig,
                 photos: dict[Path, np.ndarray]) -> list[BallView]:
+    """Each ball photo with its circle: the user's (circles file) or, of its `ball_candidates`, the
+    one on the sphere that most views agree on (`consistent_sphere`). Raises LookingGlassError
+    naming a photo where no circle fits that sphere."""
     files = _list_files(images, PHOTO_SUFFIXES + tuple(HDR_SUFFIXES), "ball photo")
     paths = sorted((p for ps in files.values() for p in ps), key=lambda p: natural_key(p.name))
     if not paths:
         raise LookingGlassError(f"no photos ({'/'.join(PHOTO_SUFFIXES)}) in this folder", images)
-    size = None
-    out = []
+    if len(paths) < 2:
+        raise LookingGlassError(f"{len(paths)} ball photo here: the ball's position needs at least 2 views", images)
+    views, candidates = [], []
     for path in paths:
         view = model.view_for(path)
         img = read_image(path, "srgb")
         if (img.shape[1], img.shape[0]) != (view.camera.width, view.camera.height):
             raise LookingGlassError(f"photo is {img.shape[1]}x{img.shape[0]} but its camera in the COLMAP model "
                                     f"({view.name}) is {view.camera.width}x{view.camera.height}", path)
-        size = size or img.shape[:2]
         photos[path] = img
-        if circles is not None and path.stem in circles:
-            out.append(BallView(path, view, circles[path.stem], "circles file"))
-            continue
-        found = detect_ball(img, config)
-        if found is None:
-            raise LookingGlassError("mirror ball not found in this photo (give its circle in --circles FILE: "
-                                    f"'{path.stem} cx cy r')", path)
-        out.append(BallView(path, view, found, "detected"))
-    if len(out) < 2:
-        raise LookingGlassError(f"{len(out)} ball photo here: the ball's position needs at least 2 views", images)
-    return out
+        views.append(view)
+        user = circles is not None and path.stem in circles
+        candidates.append([(circles[path.stem], "circles file")] if user
+                          else [(c, "detected") for c, _ in ball_candidates(img, config)])
+    flat = [(v, c, source) for v, cands in enumerate(candidates) for c, source in cands]
+    if not flat:
+        raise LookingGlassError("mirror ball not found in any photo here (give its circles in --circles FILE: "
+                                "'stem cx cy r' lines)", images)
+    cones = [circle_cone(views[v], c) for v, c, _ in flat]
+    focal = np.array([float(views[v].camera.mean_focal_length()) for v, _, _ in flat])
+    tolerance = np.array([max(config.consistency * c[2], 2.0) for _, c, _ in flat]) / focal
+    chosen, _, _ = consistent_sphere(np.stack([v.origin for v in views]), np.stack([a for a, _ in cones]),
+                                     np.array([h for _, h in cones]), np.array([v for v, _, _ in flat]), tolerance)
+    agree = int((chosen >= 0).sum())
+    for path, cands, k in zip(paths, candidates, chosen):
+        if k < 0 and cands and cands[0][1] == "circles file":
+            raise LookingGlassError(f"this photo's circle in the circles file is not on the sphere the other {agree} "
+                                    "photos agree on (a wrong circle, or a pose that does not fit)", path)
+        if k < 0:
+            what = ("no circle in it" if not cands else "no two photos agree on a sphere" if agree < 2 else
+                    f"none of its {len(cands)} circles is on the sphere the other {agree} photos agree on")
+            raise LookingGlassError(f"mirror ball not found in this photo ({what}); give its circle in --circles "
+                                    f"FILE: '{path.stem} cx cy r'", path)
+    return [BallView(path, view, *flat[k][1:]) for path, view, k in zip(paths, views, chosen)]
 
 
 def envmap_from_ball(model: str | os.PathLike, images: str | os.PathLike, out: str | os.PathLike,
@@ -344,5 +451,5 @@ def envmap_from_ball(model: str | os.PathLike, images: str | os.PathLike, out: s
     return record
 
 
-__all__ = ["read_circles", "detect_ball", "outline_points", "tangent_rays", "fit_sphere", "unwrap_view",
+__all__ = ["read_circles", "ball_candidates", "detect_ball", "circle_cone", "consistent_sphere", "outline_points", "tangent_rays", "fit_sphere", "unwrap_view",
            "fill_holes", "envmap_from_ball"]

@@ -57,6 +57,11 @@ class BallConfig:
     edge_search: the outline is searched within this fraction of the radius either side of the circle.
     min_radius_frac, max_radius_frac: the detector looks for balls with radii in this fraction of
         the photo's shorter side.
+    max_candidates: circles kept per photo (Hough's, refined onto an outline; half the best supported,
+        half the best by support x radius); the ball is the one circle per photo on the sphere most
+        views agree on.
+    consistency: how far (centre offset plus radius difference, as a fraction of the circle's
+        radius, at least 2 px) a circle may be from a sphere's outline in the photo and still be it.
     max_residual_px: a view whose outline misses the fitted sphere by more (RMS, pixels) is an error.
     """
 
@@ -71,6 +76,10 @@ class BallConfig:
                                      range=(0.005, 0.5))
     max_radius_frac: float = setting(0.45, "Largest ball radius the detector looks for (of the shorter side).",
                                      range=(0.01, 0.5))
+    max_candidates: int = setting(12, "Circles kept per photo as the ball's candidates (one is chosen by all views' "
+                                     "agreement).", range=(1, 64))
+    consistency: float = setting(0.1, "A circle is on the ball's sphere when its centre and radius are within this "
+                                       "fraction of its radius (at least 2 px) of the sphere's.", range=(0.001, 1))
     max_residual_px: float = setting(3.0, "A view's outline off the fitted sphere by more (RMS px) is an error.",
                                      range=(0, None))
 
@@ -84,7 +93,16 @@ class BallConfig:
 @dataclass
 class CaptureConfig:
     """Every setting of the real-capture path: `sfm` and `envmap-from-ball` (and `capture`, which
-    chains them with `import-colmap` and `reconstruct`)."""
+    chains them with `import-colmap` and `reconstruct`; stop_after: reconstruct's last stage there,
+    one of lookingglass.config.STAGES)."""
 
     sfm: SfmConfig = field(default_factory=SfmConfig)
     ball: BallConfig = field(default_factory=BallConfig)
+    stop_after: str = setting("refine", "`capture` only: reconstruct's last stage (visual_hull, normals, surface, "
+                                        "refine).")
+
+    def __post_init__(self) -> None:
+        from ..config import STAGES
+
+        if self.stop_after not in STAGES:
+            raise ConfigError(f"stop_after must be one of {', '.join(STAGES)}, got {self.stop_after!r}")

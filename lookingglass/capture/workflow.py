@@ -5,11 +5,12 @@ reconstructed mesh, stage by stage in one work folder; a rerun resumes after the
     WORK/sfm/       structure from motion on all photos together (`run_sfm`; kept database)
     WORK/envmap.hdr the ball's environment map, model frame (`envmap_from_ball`)
     WORK/scene/     the scene folder (`import_colmap`)
-    WORK/result/    `reconstruct`'s output (default preset)
+    WORK/result/    `reconstruct`'s output (default preset, up to config.stop_after)
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 from pathlib import Path
@@ -57,5 +58,6 @@ def run_capture(photos: str | os.PathLike, ball: str | os.PathLike, masks: str |
         reporter.info(f"reconstruct: {result} is finished, skipped")
     else:
         shutil.rmtree(result, ignore_errors=True)
-        reconstruct(scene, result, preset().pipeline, force=True, reporter=reporter)
+        pipeline = dataclasses.replace(preset().pipeline, stop_after=config.stop_after)
+        reconstruct(scene, result, pipeline, force=True, reporter=reporter)
     return result / "mesh.ply"
