@@ -557,15 +557,22 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
             - config.anchor_weight * (x - x0)
         apply, diag = system(cons.M)
         x = _unfolded(x0, x, x + _pcg(apply, rhs, diag, config.cg_iterations), faces)
+    def descend(target, step: float, iterations: int) -> list[float]:
+        """Descend `target`'s loss from the current vertices (the photometric or the normal term),
+        preconditioned by the silhouette solve's system there; returns the loss before each step and
+        after the last."""
+        nonlocal x
+        s, g = field_values(fields, cams, x)
+        apply, diag = system(_constraints(x, faces, s, g, cams, weights, config).M)
+        x, losses = _descend(x, x0, faces, target, lambda r: _pcg(apply, r, diag, config.cg_iterations),
+                             step * config.edge_length, iterations)
+        return losses + [target.loss(x, faces)[0]]
+
     normal_losses: list[float] = []
     if config.normal_iterations and normals is not None:
         t_normals = time.perf_counter()
         target = _NormalTarget.of(normals, hull, x, faces, config.normal_evidence_blur)
-        s, g = field_values(fields, cams, x)
-        apply, diag = system(_constraints(x, faces, s, g, cams, weights, config).M)
-        x, normal_losses = _descend(x, x0, faces, target, lambda r: _pcg(apply, r, diag, config.cg_iterations),
-                                    config.normal_step * config.edge_length, config.normal_iterations)
-        normal_losses.append(target.loss(x, faces)[0])
+        normal_losses = descend(target, config.normal_step, config.normal_iterations)
         timings["normals"] = time.perf_counter() - t_normals
         normal_weight_mean = float(target.weight.sum() / max(float((target.weight > 0).sum()), 1))
         normal_weight_share = float((target.weight > 0).float().mean())
@@ -573,11 +580,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     if config.photometric_iterations and capture is not None:
         t_photo = time.perf_counter()
         target = _PhotoTarget.of(capture, hull, config.rerender_width or RERENDER_WIDTH, config.photometric_envmap_height)
-        s, g = field_values(fields, cams, x)
-        apply, diag = system(_constraints(x, faces, s, g, cams, weights, config).M)
-        x, photo_losses = _descend(x, x0, faces, target, lambda r: _pcg(apply, r, diag, config.cg_iterations),
-                                   config.photometric_step * config.edge_length, config.photometric_iterations)
-        photo_losses.append(target.loss(x, faces)[0])
+        photo_losses = descend(target, config.photometric_step, config.photometric_iterations)
         timings["photometric"] = time.perf_counter() - t_photo
     timings["optimize"] = time.perf_counter() - t
 
