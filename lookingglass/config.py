@@ -51,13 +51,9 @@ class PipelineConfig:
     @classmethod
     def from_json(cls, path) -> PipelineConfig:
         """The config of a finished run: its report.json (the "config" entry) or a config JSON."""
-        import json
-        from pathlib import Path
+        from .fileio import read_json
 
-        try:
-            data = json.loads(Path(path).read_text())
-        except (OSError, ValueError) as exc:
-            raise LookingGlassError(f"cannot read the config ({exc})", path) from None
+        data = read_json(path, "config")
         if isinstance(data, dict) and "config" in data:
             data = data["config"]
         try:

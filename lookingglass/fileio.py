@@ -203,6 +203,15 @@ def sha256_file(path: str | os.PathLike) -> str:
     return h.hexdigest()
 
 
+def read_json(path: str | os.PathLike, what: str = "JSON file") -> Any:
+    """The JSON in `path`; a file that cannot be read or parsed is a LookingGlassError naming it
+    (`what` says what the file is meant to be)."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise LookingGlassError(f"cannot read the {what} ({exc})", path) from None
+
+
 def write_json(path: str | os.PathLike, data: Any) -> Path:
     """Write `data` as indented JSON, atomically."""
     text = json.dumps(data, indent=2, sort_keys=False, default=_json_default) + "\n"

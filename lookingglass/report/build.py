@@ -4,7 +4,6 @@ them out)."""
 from __future__ import annotations
 
 import base64
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,7 +14,7 @@ import trimesh
 
 from ..capture.images import exposure_factor, linear_to_srgb, srgb_to_linear
 from ..errors import LookingGlassError
-from ..fileio import write_atomic
+from ..fileio import read_json, write_atomic
 
 REPORT_NAME = "report.html"
 PANEL = 192  # pixels of one per-view picture (a square around the object)
@@ -77,10 +76,7 @@ def write_report(out_dir: str | Path, *, capture=None, report: dict | None = Non
         path = out_dir / "report.json"
         if not path.exists():
             raise LookingGlassError("no report.json: not a `lookingglass reconstruct` output folder", out_dir)
-        try:
-            report = json.loads(path.read_text())
-        except (OSError, ValueError) as exc:
-            raise LookingGlassError(f"cannot read report.json ({exc})", path) from exc
+        report = read_json(path, "reconstruct report")
     if capture is None:
         capture = load_capture(report["scene"])
     mesh = load_mesh(out_dir / "mesh.ply")

@@ -20,7 +20,7 @@ from torch import nn
 
 from ..configio import changed_keys, config_from_dict
 from ..errors import LookingGlassError
-from ..fileio import sha256_file, write_atomic, write_json
+from ..fileio import read_json, sha256_file, write_atomic, write_json
 
 WEIGHTS_DIR = Path(__file__).resolve().parent
 TRAINED_VIEWS = (5, 10, 20)
@@ -58,10 +58,7 @@ def read_weights_config(path: str | os.PathLike) -> dict:
         raise LookingGlassError("weights file not found", path)
     if not meta_path.exists():
         raise LookingGlassError("network config not found beside the weights", meta_path)
-    try:
-        meta = json.loads(meta_path.read_text())
-    except (OSError, ValueError) as exc:
-        raise LookingGlassError(f"cannot read the network config ({exc})", meta_path) from None
+    meta = read_json(meta_path, "network config")
     if not isinstance(meta, dict) or "net" not in meta:
         raise LookingGlassError('network config has no "net" entry', meta_path)
     return meta
