@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 import pycolmap
 import torch
+import trimesh
 from scipy.spatial.transform import Rotation
 
 from lookingglass.physics.camera import Cameras
@@ -192,6 +193,15 @@ def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.
     R = U @ D @ Vt
     s = np.trace(np.diag(S) @ D) / (a ** 2).sum(1).mean()
     return s, R, md - s * R @ ms
+
+
+def fitted_onto(mesh: trimesh.Trimesh, target: trimesh.Trimesh, samples: int = 4000) -> trimesh.Trimesh:
+    """`mesh` moved rigidly onto `target` by ICP from where it is (points sampled on it, closest points on
+    the target): how good a shape is, apart from where the capture's arbitrary frame put it."""
+    points = mesh.sample(samples, seed=0)
+    matrix, _, _ = trimesh.registration.icp(points, target, initial=np.eye(4), max_iterations=50, threshold=1e-7,
+                                            reflection=False, scale=False)
+    return mesh.copy().apply_transform(matrix)
 
 
 def log_luminance_correlation(a: np.ndarray, b: np.ndarray, valid: np.ndarray | None = None) -> float:

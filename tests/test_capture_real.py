@@ -14,7 +14,7 @@ import pytest
 import torch
 import trimesh
 
-from capture_synth import (distort, log_luminance_correlation, look_at_rig, mirror_ball_photos, similarity,
+from capture_synth import (distort, fitted_onto, log_luminance_correlation, look_at_rig, mirror_ball_photos, similarity,
                            write_colmap_text)
 from lookingglass.capture.colmap import IMPORT_FILE, import_colmap, read_model
 from lookingglass.capture.images import read_envmap, read_image, write_image, write_mask
@@ -278,8 +278,9 @@ def test_capture_end_to_end(tmp_path):
     similarity mapping the recovered camera centres onto the true ones, rotations are within 0.5 deg
     and centres within 1% of the camera distance, the ball's centre within 3% of its radius (the
     camera centres' own error is up to 5% of it); the hull, mapped into the true frame, is within 50%
-    (CD, see below) of the hull carved from the true cameras at the same settings; a rerun skips
-    every stage, and `sfm` rerun skips extraction and matching."""
+    (CD, see below) of the hull carved from the true cameras at the same settings, and fitted onto the
+    object (ICP, as the true cameras' hull), within 10% of it (the issue's bar); a rerun skips every
+    stage, and `sfm` rerun skips extraction and matching."""
     from capture_synth import OBJECT_CENTRE, OBJECT_RADIUS, capture_shoot
     from cli_helpers import run
     from lookingglass.capture.sfm import run_sfm
@@ -311,18 +312,20 @@ def test_capture_end_to_end(tmp_path):
                                   preset().pipeline.hull).mesh
     cd = shape_metrics(hull, truth["mesh"])["cd"]
     cd_true = shape_metrics(true_hull, truth["mesh"])["cd"]
+    cd_fit = shape_metrics(fitted_onto(hull, truth["mesh"]), truth["mesh"])["cd"]
+    cd_true_fit = shape_metrics(fitted_onto(true_hull, truth["mesh"]), truth["mesh"])["cd"]
     print(f"capture: rotation error max {rot_err.max():.3f} deg, centre error max {100 * centre_err.max():.3f}%, ball "
           f"centre error {100 * ball_err:.2f}% of r, radius {100 * radius_err:+.2f}%, residuals px "
           f"{[round(v['residual_px'], 2) for v in ball_fit['views']]}; hull CD x1e4 {cd:.2f} against {cd_true:.2f} "
-          "from the true cameras")
+          f"from the true cameras; fitted onto the object: {cd_fit:.2f} against {cd_true_fit:.2f}")
     assert rot_err.max() < 0.5 and centre_err.max() < 0.01
     assert ball_err < 0.03 and max(v["residual_px"] for v in ball_fit["views"]) < 3.0
-    # 50%, not the issue's 10%: through the same import path the true cameras give a hull within 1%
-    # of theirs (and test_import_colmap_hull_matches_true_cameras: within 4% at 64^3); what is left is
-    # the SfM poses' error (0.16-0.22 deg, centres 0.5-0.8% of the camera distance: ~0.5 px in these
-    # 160x120 masks, where the object's radius is 17 px), measured +16% to +27% in five runs (SfM's
-    # threads make it vary from run to run)
+    # Where the similarity puts it, 50%: that similarity is fitted to camera centres 0.5-0.8% of the
+    # camera distance off (~0.5 px in these 160x120 masks, where the object's radius is 17 px), and
+    # moves the hull with them: +16% to +27% in five runs (SfM's threads make it vary). The shape
+    # itself, fitted onto the object as the true cameras' hull is: +4.8% to +7.5% in four runs.
     assert cd <= 1.5 * cd_true, (cd, cd_true)
+    assert cd_fit <= 1.1 * cd_true_fit, (cd_fit, cd_true_fit)
     reporter = Reporter(quiet=True)
     reporter.info = lambda message: reporter.stages.append({"name": "info", "message": message})
     run_capture(tmp_path / "photos", tmp_path / "ball", tmp_path / "masks", work, reporter=reporter)  # in-process
