@@ -107,3 +107,23 @@ def test_init_across_view_counts(tiny_dataset, tmp_path):
     wide.net.fnet_channels = 32
     with pytest.raises(LookingGlassError, match="another network.*fnet_channels"):
         train_normals(ds, tmp_path / "wide", dataclasses.replace(wide, init=str(init)))
+
+
+def test_angle_loss_is_the_angle():
+    """`pixel_loss`: l2 is |n - t|^2 = 4 sin^2(a/2) (the paper's); angle is the chord 2 sin(a/2) less
+    a Charbonnier rounding of width eps near 0, so its slope in the angle stays ~1 per radian from a
+    few degrees on, where l2's grows with the error (a 2-degree miss weighs ~1/16 of a 20-degree one,
+    not 1/100). Unknown loss names are refused."""
+    from lookingglass.errors import ConfigError
+    from lookingglass.normals.train import ANGLE_LOSS_EPS, pixel_loss
+    angles = torch.deg2rad(torch.tensor([0.0, 2.0, 5.0, 20.0, 60.0]))
+    t = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1).expand(5, 3, 1, 1)
+    n = torch.stack([angles.sin(), torch.zeros(5), angles.cos()], 1).view(5, 3, 1, 1)
+    chord = 2 * torch.sin(angles / 2)
+    torch.testing.assert_close(pixel_loss(n, t, "l2").flatten(), chord ** 2)
+    angle = pixel_loss(n, t, "angle").flatten()
+    torch.testing.assert_close(angle, (chord ** 2 + ANGLE_LOSS_EPS ** 2).sqrt() - ANGLE_LOSS_EPS)
+    assert angle[0] == 0 and abs(float(angle[3] - angle[2]) / float(angles[3] - angles[2]) - 1) < 0.03
+    assert 0.05 < float(angle[1] / angle[3]) < 0.07
+    with pytest.raises(ConfigError, match="loss"):
+        TrainConfig(loss="l1")

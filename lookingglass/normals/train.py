@@ -19,6 +19,7 @@ from torch import Tensor
 
 from .. import training
 from ..configio import check_ranges, setting
+from ..errors import ConfigError
 from ..physics.optics import IOR_GLASS
 from ..progress import Reporter
 from ..weights import DEFAULT_ENVMAP_HEIGHT
@@ -45,9 +46,13 @@ class TrainConfig:
                                   range=(0, None))
     init: str = setting("", "Start from these weights.safetensors (fine-tuning; same network config) instead of "
                             "a random initialization.")
+    loss: str = setting("l2", "Per-pixel loss: l2 (the paper's squared L2 of the normals) or angle (~ the angle "
+                              "itself, so the pixels the hull already has right weigh as much as the wrong ones).")
 
     def __post_init__(self) -> None:
         check_ranges(self)
+        if self.loss not in NORMAL_LOSSES:
+            raise ConfigError(f"loss must be one of {', '.join(NORMAL_LOSSES)}, got {self.loss!r}")
 
 
 # The paper's ablations (Table 1): (use_error_map, use_cost_volume).
@@ -73,12 +78,29 @@ def normal_targets(sample: dict, device: str = "cpu") -> dict:
                 n2_valid=sample["valid"].to(device).bool() & mask)
 
 
-def normal_loss(n1: Tensor, n2: Tensor, t: dict) -> Tensor:
-    """The paper's L_N: squared L2 of N1 over the mask plus N2 over pixels with a valid GT N2."""
+# Charbonnier width of the angle loss, in chord length (|n - t| = 2 sin(angle / 2)): ~1.1 degrees.
+ANGLE_LOSS_EPS = 0.02
+NORMAL_LOSSES = ("l2", "angle")
+
+
+def pixel_loss(n: Tensor, t: Tensor, kind: str = "l2") -> Tensor:
+    """Per-pixel loss of unit normals n, t (B,3,H,W) -> (B,1,H,W). l2: |n - t|^2 ~ angle^2, which
+    spends the net on the pixels the hull has badly wrong (the paper's); angle: sqrt(|n - t|^2 +
+    eps^2) - eps ~ the angle, so adding 3 degrees where the hull is within 2 costs as much as
+    removing 3 from a 20-degree error (issue 27: the net must not make a good hull worse)."""
+    sq = ((n - t) ** 2).sum(1, keepdim=True)
+    if kind == "l2":
+        return sq
+    return (sq + ANGLE_LOSS_EPS ** 2).sqrt() - ANGLE_LOSS_EPS
+
+
+def normal_loss(n1: Tensor, n2: Tensor, t: dict, kind: str = "l2") -> Tensor:
+    """L_N: the per-pixel loss (`pixel_loss`; the paper's squared L2) of N1 over the mask plus N2
+    over pixels with a valid GT N2."""
     m1 = t["mask"].unsqueeze(1).float()
     m2 = t["n2_valid"].unsqueeze(1).float()
-    l1 = (((n1 - t["n1"]) ** 2) * m1).sum() / m1.sum().clamp(min=1)
-    l2 = (((n2 - t["n2"]) ** 2) * m2).sum() / m2.sum().clamp(min=1)
+    l1 = (pixel_loss(n1, t["n1"], kind) * m1).sum() / m1.sum().clamp(min=1)
+    l2 = (pixel_loss(n2, t["n2"], kind) * m2).sum() / m2.sum().clamp(min=1)
     return l1 + l2
 
 
@@ -105,8 +127,8 @@ def train_normals(dataset, run_dir: str | os.PathLike, config: TrainConfig, devi
         t = normal_targets(sample, device)
         n1, n2 = model(inputs, cost_volume)
         with torch.no_grad():
-            loss_hull = float(normal_loss(inputs[:, HULL_N1_CHANNELS], inputs[:, HULL_N2_CHANNELS], t))
-        return normal_loss(n1, n2, t), {"loss_hull": loss_hull}
+            loss_hull = float(normal_loss(inputs[:, HULL_N1_CHANNELS], inputs[:, HULL_N2_CHANNELS], t, config.loss))
+        return normal_loss(n1, n2, t, config.loss), {"loss_hull": loss_hull}
 
     return session.fit(lambda: NormalNet(config.net), len(dataset), step,
                        weights_extra=lambda steps: {"kind": "normals", "steps": steps,
