@@ -492,6 +492,9 @@ def eval_shapes(
     latent_iterations: int = typer.Option(10, help="Latent-optimization steps per phase (0: skip)."),
     max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
     point_weights: Optional[Path] = typer.Option(None, help="PNet weights: adds a pnet row (default: shipped)."),
+    refine: bool = typer.Option(True, "--refine/--no-refine", help="Add a `refined` row: the pnet surface through "
+                                "reconstruct's refine stage (its defaults), and score the hull, surface and "
+                                "refined mesh against the photos too (re-rendering error, silhouette IoU)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write rows and per-scene metrics as JSON "
                                             "(after every scene; a rerun with the same settings resumes from it)."),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
@@ -499,7 +502,8 @@ def eval_shapes(
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Print the paper's Table 2/3 (CD, CDN-mean, CDN-med, Metro) for the hull and the surfaces made
-    from normal predictions, as markdown."""
+    from normal predictions, as markdown; with --refine (the default), also the refined mesh and
+    every mesh's agreement with the photos."""
     from .data.torch_dataset import TransparentSceneDataset
     from .fileio import write_json
     from .normals.latent import LatentOptConfig
@@ -510,7 +514,8 @@ def eval_shapes(
     from .weights import shipped_weights
 
     device = _device(device)  # checked before any work
-    surface = apply_config_flags(ctx, make_preset().pipeline).surface
+    pipeline = apply_config_flags(ctx, make_preset().pipeline)
+    surface = pipeline.surface
     chosen = tuple(s.strip().upper() for s in strategies.split(",") if s.strip())
     if not chosen or any(s not in STRATEGIES for s in chosen):
         raise LookingGlassError(f"--strategies takes a comma-separated subset of {', '.join(STRATEGIES)}, "
@@ -524,7 +529,7 @@ def eval_shapes(
     settings = {"data": str(Path(data).resolve()), "weights": str(Path(weights).resolve()), "views": views,
                 "surface_points": surface.points,
                 "strategies": list(chosen), "latent_iterations": latent_iterations,
-                "point_weights": str(Path(point_weights).resolve()) if point_weights else None}
+                "point_weights": str(Path(point_weights).resolve()) if point_weights else None, "refine": refine}
     done = []
     if json_out is not None and json_out.exists():
         try:
@@ -541,7 +546,7 @@ def eval_shapes(
     save = (lambda partial: write_json(json_out, {"settings": settings, **partial})) if json_out else None
     result = evaluate_shapes(dataset, weights, chosen, latent, surface, max_scenes=max_scenes, reporter=reporter,
                              point_weights=point_weights, done=done, on_scene=save, device=device,
-                             workers=workers)
+                             workers=workers, refine=pipeline.refine if refine and point_weights else None)
     if save is not None:
         save(result)
     print(markdown_table(result["rows"]))

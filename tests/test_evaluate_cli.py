@@ -40,7 +40,8 @@ def test_eval_shapes_scores_writes_json_resumes_and_workers_agree(two_scene_spli
     (marked) and redoes the other to the workers' figures up to float rounding."""
     out = two_scene_split / "shapes.json"
     args = ["eval-shapes", "--data", two_scene_split, "--latent-iterations", 0, "--strategies", "RE", "--json", out,
-            "--surface-points", 4096]  # fewer than the default 40 000: faster
+            "--surface-points", 4096, "--no-refine"]  # fewer points than the default 40 000: faster; the refine
+    # row is tests/test_one_path.py's
     first = run(*args, "--workers", 2)
     rows = table_rows(first.stdout)
     names = {"vh", "vh+gt-normals", "normals-RE", "pnet-RE"}
@@ -71,7 +72,7 @@ def test_eval_shapes_scores_writes_json_resumes_and_workers_agree(two_scene_spli
         for metric, value in by_worker[row].items():
             assert redone[row][metric] == pytest.approx(value, rel=1e-3), (row, metric)
 
-    other = run(*args[:-6], "--strategies", "NE", "--json", out, ok=False)
+    other = run(*args[:-7], "--strategies", "NE", "--json", out, ok=False)
     assert other.returncode == 2 and "other settings" in other.stderr and "Traceback" not in other.stderr
 
 

@@ -9,6 +9,8 @@ hulls agree to float rounding and the meshes to what multi-threaded Poisson vari
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -70,13 +72,21 @@ def test_reconstruct_and_eval_shapes_give_the_same_mesh(scene, tmp_path):
     config.surface.points, config.normals.latent = 4096, LatentOptConfig(0, 0)  # fast; the path is the same
     reconstruct(root / "scene", tmp_path / "out", config)
     gt = dataset.meshes(0)[0]
-    # the surface stage's mesh (mesh.ply is the refine stage's, which eval-shapes does not run)
+    # the surface stage's mesh, and the refine stage's (mesh.ply)
     ours = shape_metrics(load_mesh(tmp_path / "out" / "surface.ply"), gt)
+    ours_refined = shape_metrics(load_mesh(tmp_path / "out" / "mesh.ply"), gt)
     ours_hull = shape_metrics(load_mesh(tmp_path / "out" / "visual_hull.ply"), gt)
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    refine = next(s for s in report["stages"] if s["name"] == "refine")
 
     record = evaluate_shapes(dataset, shipped_weights(10)[0], ("RE",), None, SurfaceConfig(points=4096),
-                             point_weights=shipped_weights(10, "points")[0])["scenes"][0]
+                             point_weights=shipped_weights(10, "points")[0], refine=config.refine)["scenes"][0]
     for metric in ("cd", "cdn_mean", "cdn_med", "metro"):
         assert record["vh"][metric] == pytest.approx(ours_hull[metric], rel=1e-6), metric
         # screened Poisson runs on several threads and is not bit-exact from run to run (~1e-4 here)
         assert record["pnet-RE"][metric] == pytest.approx(ours[metric], rel=5e-3), metric
+        assert record["refined"][metric] == pytest.approx(ours_refined[metric], rel=2e-2), metric
+    assert record["refined"]["kept"] == refine["kept"]
+    # the kept mesh's worst view, as the refine stage reported it
+    chosen = refine["silhouette_iou_after" if refine["kept"] == "refined" else "silhouette_iou_before"]
+    assert record["refined"]["iou_min"] == pytest.approx(min(chosen), abs=5e-3)

@@ -4,8 +4,12 @@ made from normal predictions (points on the hull + feature mapping + Poisson).
 Rows: `vh` (the hull itself); `vh+gt-normals` (the hull's points with the ground-truth first-hit
 normals mapped by the chosen strategy: what mapping + Poisson can reach with perfect normals);
 per strategy, `normals-<RE|NE|AV>` with the network's normals (latent-optimized when `latent` is
-given); and `pnet-<strategy>` when point-network weights are given (its training strategy). Metrics are DESIGN.md's (CD x1e4, Metro x1e3, CDN-mean/med in degrees), on
-the ground truth's unit-sphere scale; per-scene values are kept so the worst scenes can be read.
+given); `pnet-<strategy>` when point-network weights are given (its training strategy); and
+`refined` when a refine config is given: that surface through `reconstruct`'s refine stage (the mesh
+it keeps). Metrics are DESIGN.md's (CD x1e4, Metro x1e3, CDN-mean/med in degrees), on the ground
+truth's unit-sphere scale; with the refine row, `vh`, the pnet row and `refined` also carry the
+re-rendering error against the photos (`render.compare.rerender`) and the worst view's silhouette
+IoU with the masks. Per-scene values are kept so the worst scenes can be read.
 """
 
 from __future__ import annotations
@@ -25,10 +29,14 @@ from ..normals.predict import NormalMaps
 from ..normals.stage import run_normal_stage
 from ..parallel import map_scenes
 from ..progress import Reporter
+from ..refine import RefineConfig, refine_surface, silhouette_iou
+from ..render.compare import rerender
 from ..weights import load_normal_net, load_point_net
 from .stage import SurfaceConfig, surface_from_normals
 
 METRICS = ("cd", "cdn_mean", "cdn_med", "metro")
+# Scored beside METRICS on the rows that show the photos' side (the refine row's evaluation).
+PHOTO_METRICS = ("rerender", "iou_min")
 
 
 def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] = ("RE",),
@@ -36,7 +44,7 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
                     max_scenes: int = 0, reporter: Reporter | None = None,
                     point_weights: Path | None = None, done: list[dict] | None = None,
                     on_scene: Callable[[dict], None] | None = None, device: str = "cpu",
-                    workers: int = 1) -> dict:
+                    workers: int = 1, refine: RefineConfig | None = None) -> dict:
     """Returns {"rows": {name: {metric: mean}}, "scenes": [{"index", name: {metric}}...]}.
 
     done: scene records of an earlier, interrupted run with the same settings (their scenes are
@@ -53,7 +61,7 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
     scenes = [record for record in (done or []) if record["index"] < n]
     finished = {record["index"] for record in scenes}
     todo = [i for i in range(n) if i not in finished]
-    args = (dataset, weights, point_weights, tuple(strategies), latent, surface or SurfaceConfig())
+    args = (dataset, weights, point_weights, tuple(strategies), latent, surface or SurfaceConfig(), refine)
     records = map_scenes(_ShapeEvaluation, args, todo, workers, device)
     for record in reporter.track(records, total=len(todo), description="test scenes"):
         scenes.append(record)
@@ -66,9 +74,11 @@ class _ShapeEvaluation:
     """What every scene's evaluation needs: the dataset, the networks (loaded once) and settings."""
 
     def __init__(self, dataset, weights: Path | None, point_weights: Path | None, strategies: tuple[str, ...],
-                 latent: LatentOptConfig | None, surface: SurfaceConfig, device: str = "cpu"):
+                 latent: LatentOptConfig | None, surface: SurfaceConfig, refine: RefineConfig | None = None,
+                 device: str = "cpu"):
         self.dataset, self.strategies, self.latent, self.surface, self.device = (dataset, strategies, latent,
                                                                                  surface, device)
+        self.refine = refine
         self.weights = load_normal_net(weights) if weights is not None else None
         self.point_net = load_point_net(point_weights) if point_weights is not None else None
         if self.weights is not None:
@@ -82,7 +92,7 @@ class _ShapeEvaluation:
         capture, hull = self.dataset.capture(i), self.dataset.hull(i)
         gt = self.dataset.meshes(i)[0]
         sample = self.dataset[i]
-        record = {"index": i, "vh": shape_metrics(hull.mesh, gt)}
+        record = {"index": i, "vh": self._scored(hull.mesh, gt, capture)}
         # Ground-truth first-hit normals at the dataset's resolution: what mapping + Poisson reach
         # with perfect normals (their own rendering error is the layer's residual, taken as 0).
         mask = sample["mask"].bool()
@@ -92,13 +102,32 @@ class _ShapeEvaluation:
                            mask)
         record["vh+gt-normals"] = _surface_metrics(hull, gt, truth, self._surface(self.strategies[0]), None)
         if self.weights is not None:
-            maps = run_normal_stage(capture, hull, self.weights, self.latent, self.device).maps
+            normals = run_normal_stage(capture, hull, self.weights, self.latent, self.device)
+            maps = normals.maps
             for strategy in self.strategies:
                 record[f"normals-{strategy}"] = _surface_metrics(hull, gt, maps, self._surface(strategy), None)
             if self.point_net is not None:  # PNet maps with the strategy it was trained on
-                record[f"pnet-{self.point_net.strategy}"] = _surface_metrics(hull, gt, maps, self.surface,
-                                                                            self.point_net)
+                name = f"pnet-{self.point_net.strategy}"
+                try:
+                    mesh, _ = surface_from_normals(hull, maps, self.surface, self.point_net)
+                except LookingGlassError as exc:
+                    record[name] = {"error": str(exc)}
+                else:
+                    record[name] = self._scored(mesh, gt, capture)
+                    if self.refine is not None:  # as reconstruct's refine stage, on that surface
+                        refined = refine_surface(mesh, hull, capture.masks, capture.cameras, self.refine,
+                                                 capture=capture, normals=normals)
+                        record["refined"] = {**self._scored(refined.mesh, gt, capture),
+                                             "kept": refined.report["kept"]}
         return record
+
+    def _scored(self, mesh, gt, capture) -> dict:
+        """Shape metrics against the ground truth; with the refine row, also against the photos."""
+        metrics = shape_metrics(mesh, gt)
+        if self.refine is not None:
+            metrics["rerender"] = rerender(mesh, capture, threads=1).mean_error
+            metrics["iou_min"] = float(silhouette_iou(mesh, capture.cameras, capture.masks).min())
+        return metrics
 
     def _surface(self, strategy: str) -> SurfaceConfig:
         return dataclasses.replace(self.surface, strategy=strategy)
@@ -107,11 +136,13 @@ class _ShapeEvaluation:
 def summarize(scenes: list[dict]) -> dict:
     """{"rows": means of every row's metrics over the scenes it did not fail on, "scenes": ...}."""
     scenes = sorted(scenes, key=lambda record: record["index"])
-    names = [k for k in scenes[0] if k != "index"] if scenes else []
+    names = list(dict.fromkeys(k for s in scenes for k in s if k != "index"))
     rows = {}
     for name in names:
-        ok = [s[name] for s in scenes if "error" not in s[name]]
+        ok = [s[name] for s in scenes if name in s and "error" not in s[name]]
         rows[name] = {m: float(np.mean([s[m] for s in ok])) if ok else float("nan") for m in METRICS}
+        rows[name].update({m: float(np.mean([s[m] for s in ok])) for m in PHOTO_METRICS
+                           if ok and all(m in s for s in ok)})
         rows[name]["failed"] = len(scenes) - len(ok)
     return {"rows": rows, "scenes": scenes}
 
@@ -127,8 +158,15 @@ def _surface_metrics(hull: VisualHull, gt, maps: NormalMaps, cfg: SurfaceConfig,
 
 
 def markdown_table(rows: dict) -> str:
-    lines = ["| | CD (×1e4) | CDN-mean (°) | CDN-med (°) | Metro (×1e3) | failed |", "|---|---|---|---|---|---|"]
+    """Table 2/3 as markdown; with the re-rendering error and worst silhouette IoU columns when any row has
+    them ("-" in the rows that do not)."""
+    photo = any(m in r for r in rows.values() for m in PHOTO_METRICS)
+    extra = " re-rendering error | worst view's silhouette IoU |" if photo else ""
+    lines = ["| | CD (×1e4) | CDN-mean (°) | CDN-med (°) | Metro (×1e3) |" + extra + " failed |",
+             "|---|---|---|---|---|" + ("---|---|" if photo else "") + "---|"]
     for name, r in rows.items():
-        lines.append(f"| {name} | {r['cd']:.2f} | {r['cdn_mean']:.2f} | {r['cdn_med']:.2f} | {r['metro']:.2f} | "
-                     f"{r['failed']} |")
+        cells = f" {r['cd']:.2f} | {r['cdn_mean']:.2f} | {r['cdn_med']:.2f} | {r['metro']:.2f} |"
+        if photo:
+            cells += "".join(f" {r[m]:.4f} |" if m in r else " - |" for m in PHOTO_METRICS)
+        lines.append(f"| {name} |{cells} {r['failed']} |")
     return "\n".join(lines)
