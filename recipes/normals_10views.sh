@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Rebuild lookingglass/weights/normals_10views.safetensors (+ .json): the 10-view normal net (wr+cv, cpu preset).
 #
-# Time on a 2-core CPU: ~2.5 h (~25 min of data, then ~2 h of training: ~40 min + ~85 min).
+# Time on a 2-core CPU: ~4 h (~25 + ~26 min of data; training ~40 + ~85 + ~23 + ~25 min).
 # Provenance: lookingglass/weights/normals_10views.json (2026-11-23). Usage, from a checkout after
 # `bash scripts/setup.sh`:  bash recipes/normals_10views.sh  (settings: recipes/_lib.sh). Every step is skipped
 # when its weights.safetensors exists; an interrupted step resumes from its checkpoint when run again.
@@ -36,4 +36,16 @@ GENERATE=generate_users step normals10users "$DATA/users10" 10 1000 \
     --init "$RUNS/normals10ft/weights.safetensors" --epochs 2 --lr 2e-4 --lr-halve-epochs 1 --photo-noise 0.5 \
     --max-scenes 1000 --out "$RUNS/normals10users"
 
-install_weights normals10users normals_10views
+# 4. 3 epochs with the angle loss (issue 27: ~ the angle, not its square, so adding a few degrees where the hull is
+#    already right costs as much as removing them where it is wrong), on the same 1000 scenes, two DDP processes
+#    (~8 min an epoch): 1 epoch at 1e-4, then 2 more (1e-4, 5e-5) with another shuffling seed.
+GENERATE=generate_users step normals10angle "$DATA/users10" 10 1000 \
+    "${DDP[@]}" train-normals --data "$DATA/users10" --views 10 --preset cpu --variant wr+cv --seed 0 \
+    --init "$RUNS/normals10users/weights.safetensors" --epochs 1 --lr 1e-4 --lr-halve-epochs 1 --photo-noise 0.5 \
+    --max-scenes 1000 --loss angle --out "$RUNS/normals10angle"
+GENERATE=generate_users step normals10angle2 "$DATA/users10" 10 1000 \
+    "${DDP[@]}" train-normals --data "$DATA/users10" --views 10 --preset cpu --variant wr+cv --seed 1 \
+    --init "$RUNS/normals10angle/weights.safetensors" --epochs 2 --lr 1e-4 --lr-halve-epochs 1 --photo-noise 0.5 \
+    --max-scenes 1000 --loss angle --out "$RUNS/normals10angle2"
+
+install_weights normals10angle2 normals_10views
