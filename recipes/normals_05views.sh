@@ -2,8 +2,9 @@
 # Rebuild lookingglass/weights/normals_05views.safetensors (+ .json): the 5-view normal net, fine-tuned from the
 # 10-view net's first run.
 #
-# Time on a 2-core CPU: ~1.75 h from scratch: the 10-view net's first run (~25 min of data + ~40 min, via
-# recipes/normals_10views.sh; skipped if already made), then ~15 min of 5-view data and ~20 min of training.
+# Time on a 2-core CPU: ~2.7 h from scratch: the 10-view net's first run (~25 min of data + ~40 min, via
+# recipes/normals_10views.sh; skipped if already made), then ~15 + ~22 min of 5-view data and ~20 + ~13 + ~21 min
+# of training.
 # Provenance: lookingglass/weights/normals_05views.json (2026-11-23). Usage: bash recipes/normals_05views.sh
 # (settings: recipes/_lib.sh). Steps are skipped when their weights exist and resume when interrupted.
 #
@@ -34,4 +35,11 @@ GENERATE=generate_users step normals5users "$DATA/users5" 5 1000 \
     --init "$RUNS/normals5/weights.safetensors" --epochs 2 --lr 2e-4 --lr-halve-epochs 1 --photo-noise 0.5 \
     --max-scenes 1000 --out "$RUNS/normals5users"
 
-install_weights normals5users normals_05views
+# 3 epochs with the angle loss (as step 4 of normals_10views.sh), from the run above, on the same scenes: 1e-4 for
+# two epochs, then 5e-5; two DDP processes (~7 min an epoch).
+GENERATE=generate_users step normals5angle "$DATA/users5" 5 1000 \
+    "${DDP[@]}" train-normals --data "$DATA/users5" --views 5 --preset cpu --variant wr+cv --seed 0 \
+    --init "$RUNS/normals5users/weights.safetensors" --epochs 3 --lr 1e-4 --lr-halve-epochs 2 --photo-noise 0.5 \
+    --max-scenes 1000 --loss angle --out "$RUNS/normals5angle"
+
+install_weights normals5angle normals_05views
