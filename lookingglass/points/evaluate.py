@@ -100,25 +100,19 @@ class _ShapeEvaluation:
         truth = NormalMaps(capture.cameras.with_resolution(W, H), sample["n1"].permute(0, 2, 3, 1).float(),
                            sample["n2"].permute(0, 2, 3, 1).float(), torch.zeros(mask.shape), sample["tir"].bool() & mask,
                            mask)
-        record["vh+gt-normals"] = _surface_metrics(hull, gt, truth, self._surface(self.strategies[0]), None)
+        record["vh+gt-normals"] = _surface_metrics(hull, gt, truth, self._surface(self.strategies[0]), None)[1]
         if self.weights is not None:
             normals = run_normal_stage(capture, hull, self.weights, self.latent, self.device)
             maps = normals.maps
             for strategy in self.strategies:
-                record[f"normals-{strategy}"] = _surface_metrics(hull, gt, maps, self._surface(strategy), None)
+                record[f"normals-{strategy}"] = _surface_metrics(hull, gt, maps, self._surface(strategy), None)[1]
             if self.point_net is not None:  # PNet maps with the strategy it was trained on
-                name = f"pnet-{self.point_net.strategy}"
-                try:
-                    mesh, _ = surface_from_normals(hull, maps, self.surface, self.point_net)
-                except LookingGlassError as exc:
-                    record[name] = {"error": str(exc)}
-                else:
-                    record[name] = self._scored(mesh, gt, capture)
-                    if self.refine is not None:  # as reconstruct's refine stage, on that surface
-                        refined = refine_surface(mesh, hull, capture.masks, capture.cameras, self.refine,
-                                                 capture=capture, normals=normals)
-                        record["refined"] = {**self._scored(refined.mesh, gt, capture),
-                                             "kept": refined.report["kept"]}
+                mesh, record[f"pnet-{self.point_net.strategy}"] = _surface_metrics(
+                    hull, gt, maps, self.surface, self.point_net, lambda m, g: self._scored(m, g, capture))
+                if mesh is not None and self.refine is not None:  # as reconstruct's refine stage, on that surface
+                    refined = refine_surface(mesh, hull, capture.masks, capture.cameras, self.refine,
+                                             capture=capture, normals=normals)
+                    record["refined"] = {**self._scored(refined.mesh, gt, capture), "kept": refined.report["kept"]}
         return record
 
     def _scored(self, mesh, gt, capture) -> dict:
@@ -147,14 +141,15 @@ def summarize(scenes: list[dict]) -> dict:
     return {"rows": rows, "scenes": scenes}
 
 
-def _surface_metrics(hull: VisualHull, gt, maps: NormalMaps, cfg: SurfaceConfig, point_net) -> dict:
-    """Shape metrics of `surface_from_normals` against the ground truth; a failed Poisson is
-    recorded, not hidden."""
+def _surface_metrics(hull: VisualHull, gt, maps: NormalMaps, cfg: SurfaceConfig, point_net, score=shape_metrics,
+                     ) -> tuple[object, dict]:
+    """(`surface_from_normals`' mesh, `score(mesh, gt)`), or (None, {"error": ...}) when it failed: a
+    failed Poisson is recorded, not hidden."""
     try:
-        mesh, _ = surface_from_normals(hull, maps, cfg, point_net)
-        return shape_metrics(mesh, gt)
+        mesh = surface_from_normals(hull, maps, cfg, point_net)[0]
     except LookingGlassError as exc:
-        return {"error": str(exc)}
+        return None, {"error": str(exc)}
+    return mesh, score(mesh, gt)
 
 
 def markdown_table(rows: dict) -> str:
