@@ -113,14 +113,19 @@ def reconstruct(scene: Path, work: Path, *more) -> list:
     return ["reconstruct", scene, "--out", work / "out", "--quiet", *more]
 
 
-def edit_scene(fn) -> Callable:
+def edit_scene(fn, *fragments) -> Callable:
     def setup(root, work):
         scene = scene_copy(root, work)
         data = json.loads((scene / "scene.json").read_text())
         fn(data)
         (scene / "scene.json").write_text(json.dumps(data))
-        return reconstruct(scene, work, "--stop-after", "visual_hull"), "scene.json", ()
+        return reconstruct(scene, work, "--stop-after", "visual_hull"), "scene.json", fragments
     return setup
+
+
+def flag_probe(*flags, names: str, fragments=()) -> Callable:
+    """reconstruct with a bad config flag: refused before anything is read."""
+    return lambda root, work: (reconstruct(scene_copy(root, work), work, *flags), names, tuple(fragments))
 
 
 def broken_file(rel: str, fn, *fragments, full_run: bool = False) -> Callable:
@@ -251,6 +256,15 @@ PROBES = [
     Probe("scene_json_broken", broken_file("scene.json", lambda p: p.write_text("{\"views\": ["), "invalid JSON")),
     Probe("image_path_leaves_scene", edit_scene(lambda d: d["views"][2].update(image="../../etc/passwd.png"))),
     Probe("envmap_path_absolute", edit_scene(lambda d: d.update(envmap="/tmp/env.hdr"))),
+    Probe("scene_ior_0.8", edit_scene(lambda d: d.update(ior=0.8), "ior must be an index of refraction from 1.0 to "
+                                      "3.0", "got 0.8")),
+    Probe("scene_ior_3.5", edit_scene(lambda d: d.update(ior=3.5), "got 3.5")),
+    # the IoR reconstruct assumes (--ior, --ior-range)
+    Probe("ior_0.9", flag_probe("--ior", 0.9, names="--ior=0.9", fragments=["from 1.0 to 3.0"])),
+    Probe("ior_word", flag_probe("--ior", "abc", names="--ior=abc", fragments=["scene or an index of refraction"])),
+    Probe("ior_range_reversed", flag_probe("--ior-range", 1.7, 1.3, names="--ior-range",
+                                           fragments=["LO must be below HI, got 1.7 1.3"])),
+    Probe("ior_range_below_1", flag_probe("--ior-range", 0.5, 1.3, names="--ior-range", fragments=["got 0.5"])),
     # images
     Probe("image_negative_exr", broken_file("images/01.exr", negative_pixel, "negative")),
     Probe("image_truncated_exr", broken_file("images/02.exr", truncated, "truncated")),
@@ -287,6 +301,8 @@ PROBES = [
     Probe("render_size_negative", render_probe("gt.ply", "--size", -5, 4, names="--size")),
     Probe("render_size_absurd", render_probe("gt.ply", "--size", 100000, 75000, names="--size")),
     Probe("render_ior_0", render_probe("gt.ply", "--ior", 0, names="--ior")),
+    Probe("render_ior_3.5", render_probe("gt.ply", "--ior", 3.5, names="--ior", fragments=["from 1.0 to 3.0",
+                                                                                             "got 3.5"])),
     Probe("render_inward_mesh", render_probe("inward.ply", fragments=["inward"])),
     Probe("render_open_mesh", render_probe("open.ply", fragments=["not closed"])),
     Probe("render_self_intersecting_mesh", render_probe("crossing.ply", fragments=["intersects itself"])),
@@ -475,7 +491,19 @@ def real_sfm_sizes(root, work):
     return ["sfm", "--images", work / "photos", "--out", work / "out", "--quiet"], "IMG_3.png", ("share one size",)
 
 
-REAL_PROBES = [Probe("photo-other-size", real_photo_other_size), Probe("model-lacks-photo", real_model_lacks_photo),
+def real_ior(command: str, ior: float) -> Callable:
+    def setup(root, work):
+        copy_real(root, work)
+        args = import_colmap_args(work) if command == "import-colmap" else [
+            "capture", "--photos", work / "photos", "--ball", work / "ball", "--masks", work / "masks", "--out",
+            work / "out", "--quiet"]
+        return [*args, "--ior", ior], "--ior", (f"got {ior}", "from 1.0 to 3.0")
+    return setup
+
+
+REAL_PROBES = [Probe("import-colmap-ior", real_ior("import-colmap", 3.5)),
+               Probe("capture-ior", real_ior("capture", 0.5)),
+               Probe("photo-other-size", real_photo_other_size), Probe("model-lacks-photo", real_model_lacks_photo),
                Probe("mask-other-size", real_mask_other_size), Probe("ball-not-found", real_ball_not_found),
                Probe("sfm-photo-sizes", real_sfm_sizes)]
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import time
 import warnings
 from pathlib import Path
@@ -250,8 +249,9 @@ def test_malformed_json_names_line(scene):
     (lambda d: d["views"][1].__setitem__("fov_x_deg", 180), ["views[1].fov_x_deg", "(0, 180)"]),
     (lambda d: d["views"][1].__setitem__("fov_x_deg", "60"), ["views[1].fov_x_deg must be a number"]),
     (lambda d: d["views"][1].__setitem__("fov_x_deg", True), ["views[1].fov_x_deg must be a number"]),
-    (lambda d: d.__setitem__("ior", 0), ["ior must be > 0"]),
-    (lambda d: d.__setitem__("ior", -1.5), ["ior must be > 0"]),
+    (lambda d: d.__setitem__("ior", 0), ["ior must be an index of refraction from 1.0 to 3.0", "got 0"]),
+    (lambda d: d.__setitem__("ior", -1.5), ["ior must be an index of refraction from 1.0 to 3.0", "got -1.5"]),
+    (lambda d: d.__setitem__("ior", "1.5"), ["ior must be a number"]),
     (lambda d: d.__setitem__("envmap_scale", 0), ["envmap_scale must be > 0"]),
     (lambda d: d.__setitem__("image_encoding", "gamma"), ["image_encoding"]),
     (lambda d: d.__setitem__("views", []), ["'views' is empty"]),
@@ -411,9 +411,24 @@ def test_duplicate_cameras_warn_from_spec():
     assert len(notes) == 1 and "identical cameras" in notes[0]
 
 
-def test_unusual_ior_warns_but_loads(scene):
+@pytest.mark.parametrize("ior", [0.8, 3.5, 0.9999])
+def test_ior_outside_1_to_3_is_refused(scene, ior):
     folder, *_ = scene
-    edit_json(folder, lambda d: d.__setitem__("ior", 0.8))
-    with pytest.warns(LookingGlassWarning, match="unusual index of refraction 0.8"):
+    edit_json(folder, lambda d: d.__setitem__("ior", ior))
+    message = expect_error(folder, "scene.json", f"ior must be an index of refraction from 1.0 to 3.0 (glass is "
+                                                 f"about 1.5), got {ior}")
+    assert message.count("\n") == 0
+
+
+@pytest.mark.parametrize("ior", [1.0, 3.0, 1.6])
+def test_ior_at_the_bounds_loads_without_a_warning(scene, ior):
+    folder, *_ = scene
+    edit_json(folder, lambda d: d.__setitem__("ior", ior))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LookingGlassWarning)
         cap = load_capture(folder)
-    assert math.isclose(cap.ior, 0.8)
+    assert cap.ior == ior and cap.spec.ior == ior
+    held = cap.with_ior(1.3)  # an IoR held over scene.json's: every stage reads `ior`, the spec stays the file's
+    assert (held.ior, held.spec.ior, cap.ior) == (1.3, ior, ior) and held.images is cap.images
+    with pytest.raises(LookingGlassError, match="got 3.2"):
+        cap.with_ior(3.2)

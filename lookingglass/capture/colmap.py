@@ -35,7 +35,7 @@ import torch
 from ..errors import LookingGlassError, LookingGlassWarning
 from ..fileio import staged_dir, write_json
 from ..physics.camera import Cameras
-from ..physics.constants import IOR_GLASS
+from ..physics.constants import IOR_GLASS, check_ior
 from ..physics.environment import rotate_envmap
 from .images import HDR_SUFFIXES, check_image_size, read_envmap, read_image, read_mask
 from .paper_import import (PHOTO_SUFFIXES, _check_aspect, _check_envmap_and_out, _list_files,
@@ -289,8 +289,7 @@ def import_colmap(model: str | os.PathLike, images: str | os.PathLike, masks: st
     onto `out`. Raises LookingGlassError naming the file at fault; inputs are only read.
     """
     model, images, masks, envmap, out = (Path(p) for p in (model, images, masks, envmap, out))
-    if not (math.isfinite(ior) and ior > 0):
-        raise LookingGlassError(f"--ior must be a positive number, got {ior}")
+    ior = check_ior(ior, "--ior")
     if size is not None:
         size = check_image_size(size, "--size")
     if up is not None:

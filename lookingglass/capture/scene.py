@@ -10,7 +10,7 @@ Two layers:
   float32 linear times `envmap_scale`, and `Cameras` (float32).
 
 Problems the user must fix raise `LookingGlassError` naming the file and the problem. Odd but
-usable input (unknown keys, duplicated cameras, an unusual IoR, a mask covering the whole image)
+usable input (unknown keys, duplicated cameras, a mask covering the whole image)
 is reported as text by the parsers and emitted by `load_capture` as Python warnings of category
 `LookingGlassWarning` (also kept in `Capture.warnings`). Nothing in the scene folder is ever
 modified by loading. `save_scene` writes a folder in this format (scene.json last, atomically).
@@ -24,7 +24,7 @@ import math
 import os
 import warnings
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -37,7 +37,7 @@ from ..physics.camera import Cameras
 from .images import read_envmap, read_image, read_mask, write_image, write_mask
 
 SCENE_FILE = "scene.json"
-from ..physics.constants import IOR_GLASS as DEFAULT_IOR
+from ..physics.constants import IOR_GLASS as DEFAULT_IOR, check_ior
 IMAGE_ENCODINGS = ("srgb", "linear")
 
 _TOP_KEYS = ("ior", "envmap", "envmap_scale", "image_encoding", "views")
@@ -130,11 +130,7 @@ class SceneSpec:
         unknown_top = _unknown_keys(data, _TOP_KEYS)
         notes += [f"{src}: unknown key '{k}'{_did_you_mean(k, _TOP_KEYS)} (ignored)" for k in unknown_top]
 
-        ior = _number(data.get("ior", DEFAULT_IOR), "ior", fail)
-        if ior <= 0:
-            raise fail(f"ior must be > 0, got {ior}")
-        if ior < 1.0 or ior > 3.0:
-            notes.append(f"{src}: unusual index of refraction {ior} (glass is about 1.5; expected 1 to 3)")
+        ior = check_ior(_number(data.get("ior", DEFAULT_IOR), "ior", fail), "ior", fail)
         if "envmap" not in data:
             raise fail("missing required key 'envmap' (path of the environment map)"
                        + _unknown_hint(unknown_top))
@@ -329,6 +325,12 @@ class Capture:
     @property
     def envmap_path(self) -> Path:
         return self.root / self.spec.envmap
+
+    def with_ior(self, ior: float) -> Capture:
+        """This capture with another index of refraction for every stage that reads `ior` (one the
+        user knows better, `reconstruct --ior`, or one an evaluation holds); `spec` keeps scene.json's.
+        Raises LookingGlassError for an IoR out of [IOR_MIN, IOR_MAX]."""
+        return replace(self, ior=check_ior(ior))
 
 
 def load_capture(folder: str | os.PathLike) -> Capture:

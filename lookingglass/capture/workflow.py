@@ -16,7 +16,7 @@ import shutil
 from pathlib import Path
 
 from ..errors import LookingGlassError
-from ..physics.constants import IOR_GLASS
+from ..physics.constants import IOR_GLASS, check_ior
 from .config import CaptureConfig
 
 
@@ -31,6 +31,7 @@ def run_capture(photos: str | os.PathLike, ball: str | os.PathLike, masks: str |
     from .colmap import import_colmap
     from .sfm import SFM_FILE, run_sfm
 
+    ior = check_ior(ior, "--ior")  # before any stage: the import stage would refuse it only after sfm
     reporter = reporter or Reporter(quiet=True)
     photos, ball, masks, out = (Path(p) for p in (photos, ball, masks, out))
     for p in (photos, ball, masks):
