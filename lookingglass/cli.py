@@ -13,7 +13,7 @@ from rich.markup import escape
 
 from .cliconfig import ConfigOptions, apply_config_flags, config_command
 from .errors import Interrupted, LookingGlassError
-from .physics.constants import IOR_GLASS, PAPER_CAPTURE_FOV_X_DEG
+from .physics.constants import IOR_GLASS, IOR_MAX, IOR_MIN, PAPER_CAPTURE_FOV_X_DEG, check_ior
 from .presets import DEFAULT_PRESET, PRESET_NAMES
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
@@ -22,6 +22,10 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
 
 WORKERS_HELP = ("Scenes evaluated at once on the CPU, one process each (0: one per core; with a GPU, one "
                 "process).")
+IOR_HELP = f"Index of refraction of the object, from {IOR_MIN} to {IOR_MAX}."
+EVAL_IOR_HELP = (f"The IoR the pipeline assumes for every test scene: scene (each scene's own) or a number from "
+                 f"{IOR_MIN} to {IOR_MAX}, e.g. {IOR_GLASS}, the networks' training IoR, on a variable-IoR split (the paper's "
+                 "var. IoR rows). The ground truth stays each scene's own.")
 FORCE_HELP = ("Replace a non-empty output folder: whole, and only once this run has finished (until then it is "
               "written in a temporary folder beside it).")
 PRESET_HELP = (f"Preset the config options start from: {', '.join(PRESET_NAMES)} (lookingglass/presets.py); "
@@ -152,7 +156,7 @@ def import_colmap(
     envmap: Path = typer.Option(..., "--envmap", help="Environment map in the model's frame (e.g. from "
                                                       "`envmap-from-ball`)."),
     out: Path = typer.Option(..., "--out", help="Scene folder to write."),
-    ior: float = typer.Option(IOR_GLASS, help="Index of refraction of the object."),
+    ior: float = typer.Option(IOR_GLASS, help=IOR_HELP),
     size: Optional[tuple[int, int]] = typer.Option(None, "--size", help="Resize images and masks to W H."),
     up: Optional[tuple[float, float, float]] = typer.Option(None, "--up", help="Up direction x y z in the model's "
                                                             "frame (default: the cameras' mean up)."),
@@ -226,7 +230,7 @@ def capture(
                                                 "after the last finished stage)."),
     circles: Optional[Path] = typer.Option(None, "--circles", help="Ball circles where detection fails ('stem cx cy "
                                                                    "r' lines)."),
-    ior: float = typer.Option(IOR_GLASS, help="Index of refraction of the object."),
+    ior: float = typer.Option(IOR_GLASS, help=IOR_HELP),
     size: Optional[tuple[int, int]] = typer.Option(None, "--size", help="Resize the scene's images to W H."),
     envmap_size: tuple[int, int] = typer.Option((1024, 512), "--envmap-size", help="Environment map size W H."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
@@ -249,13 +253,11 @@ def render(
     scene: Optional[Path] = typer.Option(None, "--scene", help="Take the cameras from this scene.json."),
     rig: Optional[int] = typer.Option(None, "--rig", help="The paper's rig of 5, 10 or 20 views around the unit sphere."),
     size: Optional[tuple[int, int]] = typer.Option(None, "--size", help="Image size W H."),
-    ior: float = typer.Option(IOR_GLASS, help="Index of refraction of the object."),
+    ior: float = typer.Option(IOR_GLASS, help=IOR_HELP),
     seed: int = typer.Option(0, help="Seed of the rig jitter and the anti-aliasing."),
     force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Render a glass mesh under an environment map into a scene folder (images, masks, cameras)."""
-    import math
-
     from .capture.images import check_image_size, read_envmap, read_raw
     from .capture.scene import SceneSpec
     from .data.rigs import paper_rig
@@ -272,8 +274,7 @@ def render(
         raise LookingGlassError(f"--rig must be 5, 10 or 20, got {rig}")
     if size is not None:
         size = check_image_size(size, "--size")
-    if not (math.isfinite(ior) and ior > 0):
-        raise LookingGlassError(f"--ior must be a positive number, got {ior}")
+    check_ior(ior, "--ior")
     inputs = [p for p in (mesh, envmap, scene) if p is not None]
     check_output_dir(out, force, inputs)
     glass = load_mesh(mesh)
@@ -459,17 +460,21 @@ def eval_normals(
     views: int = typer.Option(10, help="Views per scene."),
     latent_iterations: int = typer.Option(10, help="Latent-optimization steps per phase for wr+cv+op (0: skip)."),
     max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
+    ior: str = typer.Option("scene", "--ior", help=EVAL_IOR_HELP),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the settings and rows as JSON."),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
     workers: int = typer.Option(0, help=WORKERS_HELP),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Print the paper's Table 1 (N1/N2 angle errors, render error) on the test split as markdown."""
     from .data.torch_dataset import TransparentSceneDataset
+    from .fileio import write_json
     from .normals.evaluate import evaluate_normals, markdown_table
     from .normals.latent import LatentOptConfig
     from .progress import Reporter
 
     device = _device(device)  # checked before any work
+    held = _held_ior(ior)
     paths = {}
     for item in weights:
         name, sep, path = item.partition("=")
@@ -478,8 +483,21 @@ def eval_normals(
         paths[name] = Path(path)
     latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
     dataset = TransparentSceneDataset(data, "test", views=views)
-    results = evaluate_normals(dataset, paths, latent, max_scenes, Reporter(quiet=quiet), device, workers)
+    results = evaluate_normals(dataset, paths, latent, max_scenes, Reporter(quiet=quiet), device, workers, ior=held)
+    if json_out is not None:
+        settings = {"data": str(Path(data).resolve()), "weights": {k: str(p.resolve()) for k, p in paths.items()},
+                    "views": views, "latent_iterations": latent_iterations, "max_scenes": max_scenes,
+                    "ior": held if held is not None else "scene"}
+        write_json(json_out, {"settings": settings, "rows": results})
     print(markdown_table(results))
+
+
+def _held_ior(text: str) -> float | None:
+    """An evaluation's --ior: None for "scene" (each scene's own), else the number, checked."""
+    from .config import parse_ior
+
+    ior = parse_ior(text, "--ior")
+    return None if ior == "scene" else ior
 
 
 @app.command("eval-shapes", cls=config_command(EVAL_SHAPES_OPTIONS))
@@ -497,6 +515,7 @@ def eval_shapes(
                                 "refined mesh against the photos too (re-rendering error, silhouette IoU)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write rows and per-scene metrics as JSON "
                                             "(after every scene; a rerun with the same settings resumes from it)."),
+    ior: str = typer.Option("scene", "--ior", help=EVAL_IOR_HELP),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
     workers: int = typer.Option(0, help=WORKERS_HELP),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
@@ -514,6 +533,7 @@ def eval_shapes(
     from .weights import shipped_weights
 
     device = _device(device)  # checked before any work
+    held = _held_ior(ior)
     pipeline = apply_config_flags(ctx, make_preset().pipeline)
     surface = pipeline.surface
     chosen = tuple(s.strip().upper() for s in strategies.split(",") if s.strip())
@@ -529,7 +549,9 @@ def eval_shapes(
     settings = {"data": str(Path(data).resolve()), "weights": str(Path(weights).resolve()), "views": views,
                 "surface_points": surface.points,
                 "strategies": list(chosen), "latent_iterations": latent_iterations,
-                "point_weights": str(Path(point_weights).resolve()) if point_weights else None, "refine": refine}
+                "point_weights": str(Path(point_weights).resolve()) if point_weights else None, "refine": refine,
+                # only when held: the JSON of an evaluation at each scene's own IoR resumes as before
+                **({"ior": held} if held is not None else {})}
     done = []
     if json_out is not None and json_out.exists():
         try:
@@ -546,7 +568,7 @@ def eval_shapes(
     save = (lambda partial: write_json(json_out, {"settings": settings, **partial})) if json_out else None
     result = evaluate_shapes(dataset, weights, chosen, latent, surface, max_scenes=max_scenes, reporter=reporter,
                              point_weights=point_weights, done=done, on_scene=save, device=device,
-                             workers=workers, refine=pipeline.refine if refine and point_weights else None)
+                             workers=workers, refine=pipeline.refine if refine and point_weights else None, ior=held)
     if save is not None:
         save(result)
     print(markdown_table(result["rows"]))

@@ -13,18 +13,35 @@ from .configio import config_from_dict, config_to_dict, setting  # noqa: F401 (r
 from .errors import ConfigError, LookingGlassError
 from .hull import HullConfig
 from .normals.stage import NormalStageConfig
+from .physics.constants import IOR_MAX, IOR_MIN, check_ior, check_ior_range
 from .points.stage import SurfaceConfig
 from .refine import RefineConfig
 
 
 STAGES = ("visual_hull", "normals", "surface", "refine")
+IOR_CHOICES = ("scene",)  # the words `ior` takes besides a number
+
+
+def parse_ior(text: str, name: str = "ior") -> str | float:
+    """PipelineConfig.ior read: one of IOR_CHOICES ("scene": scene.json's IoR) as it is, else the
+    number it holds, in [IOR_MIN, IOR_MAX]. Raises ConfigError naming `name` and the text."""
+    if text in IOR_CHOICES:
+        return text
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        words = " or ".join(IOR_CHOICES)
+        raise ConfigError(f"{name} must be {words} or an index of refraction from {IOR_MIN} to {IOR_MAX}, "
+                          f"got {text!r}") from None
+    return check_ior(value, name, ConfigError)
 
 
 @dataclass
 class PipelineConfig:
     """Everything `reconstruct` needs. device: "cpu", "cuda", "cuda:1", ... ("auto" = cuda if
     present; resolved once, and every stage, the hull's carving included, runs there).
-    stop_after: the last of STAGES to run."""
+    stop_after: the last of STAGES to run. ior: `parse_ior`'s text, the IoR every stage assumes.
+    ior_range: (LO, HI), LO < HI, the IoRs an estimate of the IoR may take."""
 
     hull: HullConfig = field(default_factory=HullConfig)
     normals: NormalStageConfig = field(default_factory=NormalStageConfig)
@@ -33,12 +50,18 @@ class PipelineConfig:
     stop_after: str = setting("refine", f"Last stage to run: {', '.join(STAGES)}.")
     device: str = setting("auto", "cpu, cuda, cuda:N or auto (cuda when present).")
     seed: int = setting(0, "Not read by any stage yet (the point sampling takes surface.seed).")
+    ior: str = setting("scene", f"Index of refraction of the object: scene (scene.json's) or a number from {IOR_MIN} "
+                       f"to {IOR_MAX}, used instead.")
+    ior_range: tuple[float, float] = setting((1.3, 1.7), f"LO HI, LO < HI, from {IOR_MIN} to {IOR_MAX}: the indices of "
+                                             "refraction an estimate of the IoR may take.")
 
     def __post_init__(self) -> None:
         if self.stop_after not in STAGES:
             raise ConfigError(f"stop_after must be one of {', '.join(STAGES)}, got {self.stop_after!r}")
         if not (self.device in ("auto", "cpu", "cuda") or self.device.startswith("cuda:")):
             raise ConfigError(f"device must be cpu, cuda, cuda:N or auto, got {self.device!r}")
+        parse_ior(self.ior)
+        check_ior_range(self.ior_range, "ior_range", ConfigError)
 
     def resolved(self) -> PipelineConfig:
         """This config with its device resolved ("auto" -> what is present) and the hull carving on

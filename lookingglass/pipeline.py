@@ -32,7 +32,7 @@ import trimesh
 
 from . import __version__
 from .capture.scene import SCENE_FILE, Capture, load_capture
-from .config import STAGES, PipelineConfig, config_to_dict
+from .config import STAGES, PipelineConfig, config_to_dict, parse_ior
 from .errors import LookingGlassError
 from .fileio import staged_dir, write_atomic, write_json
 from .hull import VisualHull, carve_visual_hull
@@ -114,6 +114,15 @@ def _normal_weights(capture, config: PipelineConfig,
                                 "network has nothing to see; check the images' exposure and encoding, or stop after "
                                 "the visual hull", capture.root / SCENE_FILE)
     return weights, trained_views, requested
+
+
+def _assumed_ior(capture: Capture, config: PipelineConfig) -> tuple[Capture, str]:
+    """The capture with the IoR every stage assumes (they read `capture.ior`), and where it came
+    from: "scene" (scene.json's) or "config" (a number in `config.ior`, e.g. `--ior 1.6`)."""
+    ior = parse_ior(config.ior)
+    if ior == "scene":
+        return capture, "scene"
+    return capture.with_ior(ior), "config"
 
 
 def _normals(capture, hull: VisualHull, weights: NormalWeights, trained_views: int, requested: int,
@@ -212,7 +221,7 @@ def _run(scene_dir: Path, out_dir: Path, config: PipelineConfig, wanted: tuple[s
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         with reporter.stage("load", f"load {scene_dir}") as rec:
-            capture = load_capture(scene_dir)
+            capture, ior_source = _assumed_ior(load_capture(scene_dir), config)
             rec.update(views=capture.num_views, image_size=[capture.width, capture.height])
             weights, trained_views, requested = _normal_weights(capture, config, given) if "normals" in wanted \
                 else (None, 0, 0)
@@ -246,6 +255,7 @@ def _run(scene_dir: Path, out_dir: Path, config: PipelineConfig, wanted: tuple[s
         "num_views": capture.num_views,
         "image_size": [capture.width, capture.height],
         "ior": capture.ior,
+        "ior_source": ior_source,
         "device": device,
         "stages_requested": list(wanted),
         "stages_run": [s["name"] for s in reporter.stages[first:] if s["name"] in STAGES],

@@ -131,11 +131,13 @@ class TransparentSceneDataset(Dataset):
         d = self.scene_dirs[index]
         return load_scene_mesh(d, "mesh"), load_scene_mesh(d, "hull")
 
-    def capture(self, index: int):
+    def capture(self, index: int, ior: float | None = None):
         """Scene `index` as a `Capture`, what `load_capture` gives for its scene folder: the stored
-        linear images (not normalized), masks, environment map (unscaled), cameras and IoR; the
-        views this dataset serves. `save_scene(folder, c.spec, c.images, c.masks, c.envmap)`
-        writes it as a scene folder `reconstruct` reads (EXR images and map: exact)."""
+        linear images (not normalized), masks, environment map (unscaled), cameras and IoR (the
+        scene's own, meta.json's; `ior`, when given, instead: one an evaluation holds for every
+        scene, `Capture.with_ior`); the views this dataset serves. `save_scene(folder, c.spec,
+        c.images, c.masks, c.envmap)` writes it as a scene folder `reconstruct` reads (EXR images
+        and map: exact)."""
         from ..capture.scene import Capture, SceneSpec, ViewSpec
         from .dataset import scene_cameras
 
@@ -151,9 +153,10 @@ class TransparentSceneDataset(Dataset):
                           target=tuple(rig["target"][v]), up=tuple(rig["up"][v]), fov_x_deg=rig["fov_x_deg"][v])
                  for v in range(cameras.num_views)]
         spec = SceneSpec(ior=float(meta["ior"]), envmap="envmap.exr", image_encoding="linear", views=views)
-        return Capture(root=scene_dir, spec=spec, images=maps["image"][sel].astype(np.float32),
-                       masks=maps["mask"][sel].astype(bool), envmap=np.array(scene_envmap(meta, self.envmap_folder)),
-                       cameras=cameras, ior=float(meta["ior"]))
+        capture = Capture(root=scene_dir, spec=spec, images=maps["image"][sel].astype(np.float32),
+                          masks=maps["mask"][sel].astype(bool), envmap=np.array(scene_envmap(meta, self.envmap_folder)),
+                          cameras=cameras, ior=float(meta["ior"]))
+        return capture if ior is None else capture.with_ior(ior)
 
     def hull(self, index: int):
         """Scene `index`'s stored visual hull as a `VisualHull` with the normalization `generate`

@@ -70,14 +70,17 @@ class NormalErrors:
 
 def evaluate_normals(dataset, weights: dict[str, Path], latent: LatentOptConfig | None = None,
                      max_scenes: int = 0, reporter: Reporter | None = None, device: str = "cpu",
-                     workers: int = 1) -> dict[str, dict]:
+                     workers: int = 1, ior: float | None = None) -> dict[str, dict]:
     """Rows of Table 1. weights maps a variant name (basic, wr, wr+cv) to its weights file;
     `wr+cv+op` is added when wr+cv is given and `latent` is not None. Runs on `device`.
     workers: scenes evaluated at once, each in its own process with one thread (0: one per core;
-    CPU only); the pooled statistics do not depend on it beyond float rounding."""
+    CPU only); the pooled statistics do not depend on it beyond float rounding. ior: the IoR the
+    inputs, the rendering layer and the latent optimization assume for every scene (the paper's
+    "var. IoR" rows hold 1.4723 while the photos have others); None: each scene's own. The ground
+    truth is the scene's own either way."""
     reporter = reporter or Reporter(quiet=True)
     n = len(dataset) if not max_scenes else min(max_scenes, len(dataset))
-    per_scene = map_scenes(_NormalEvaluation, (dataset, dict(weights), latent), list(range(n)), workers, device)
+    per_scene = map_scenes(_NormalEvaluation, (dataset, dict(weights), latent, ior), list(range(n)), workers, device)
     rows: dict[str, NormalErrors] = {}
     for scene_rows in reporter.track(per_scene, total=n, description="test scenes"):
         for name, errors in scene_rows.items():
@@ -90,8 +93,9 @@ def evaluate_normals(dataset, weights: dict[str, Path], latent: LatentOptConfig 
 class _NormalEvaluation:
     """What every scene's evaluation needs: the dataset, the networks (loaded once) and settings."""
 
-    def __init__(self, dataset, weights: dict[str, Path], latent: LatentOptConfig | None, device: str = "cpu"):
-        self.dataset, self.latent, self.device = dataset, latent, device
+    def __init__(self, dataset, weights: dict[str, Path], latent: LatentOptConfig | None, ior: float | None = None,
+                 device: str = "cpu"):
+        self.dataset, self.latent, self.ior, self.device = dataset, latent, ior, device
         self.nets = {name: load_normal_net(path) for name, path in weights.items()}
         for w in self.nets.values():
             w.net.to(device)
@@ -99,7 +103,7 @@ class _NormalEvaluation:
     def scene(self, i: int) -> dict[str, NormalErrors]:
         """Every row's errors on test scene i, on `reconstruct`'s path: the inputs are made from
         the scene as a capture and its hull (`NormalInputs.from_capture`)."""
-        capture, hull = self.dataset.capture(i), self.dataset.hull(i)
+        capture, hull = self.dataset.capture(i, self.ior), self.dataset.hull(i)
         truth = normal_targets(self.dataset[i], self.device)
         made: dict[tuple, NormalInputs] = {}  # nets of one size and map height share their inputs
 

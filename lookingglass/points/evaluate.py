@@ -44,7 +44,7 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
                     max_scenes: int = 0, reporter: Reporter | None = None,
                     point_weights: Path | None = None, done: list[dict] | None = None,
                     on_scene: Callable[[dict], None] | None = None, device: str = "cpu",
-                    workers: int = 1, refine: RefineConfig | None = None) -> dict:
+                    workers: int = 1, refine: RefineConfig | None = None, ior: float | None = None) -> dict:
     """Returns {"rows": {name: {metric: mean}}, "scenes": [{"index", name: {metric}}...]}.
 
     done: scene records of an earlier, interrupted run with the same settings (their scenes are
@@ -55,13 +55,14 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
     dataset: a TransparentSceneDataset (test split, not augmented). Surfaces are made in each
     scene's hull-normalized frame (PNet's, from meta.json) and scored against the GT in its own
     unit-sphere frame. The networks and the rendering layer run on `device`; feature mapping and
-    Poisson on the CPU."""
+    Poisson on the CPU. ior: the IoR every stage assumes for every scene (the paper's "var. IoR"
+    rows hold 1.4723); None: each scene's own. The ground truth is the scene's own either way."""
     reporter = reporter or Reporter(quiet=True)
     n = len(dataset) if not max_scenes else min(max_scenes, len(dataset))
     scenes = [record for record in (done or []) if record["index"] < n]
     finished = {record["index"] for record in scenes}
     todo = [i for i in range(n) if i not in finished]
-    args = (dataset, weights, point_weights, tuple(strategies), latent, surface or SurfaceConfig(), refine)
+    args = (dataset, weights, point_weights, tuple(strategies), latent, surface or SurfaceConfig(), refine, ior)
     records = map_scenes(_ShapeEvaluation, args, todo, workers, device)
     for record in reporter.track(records, total=len(todo), description="test scenes"):
         scenes.append(record)
@@ -75,10 +76,10 @@ class _ShapeEvaluation:
 
     def __init__(self, dataset, weights: Path | None, point_weights: Path | None, strategies: tuple[str, ...],
                  latent: LatentOptConfig | None, surface: SurfaceConfig, refine: RefineConfig | None = None,
-                 device: str = "cpu"):
+                 ior: float | None = None, device: str = "cpu"):
         self.dataset, self.strategies, self.latent, self.surface, self.device = (dataset, strategies, latent,
                                                                                  surface, device)
-        self.refine = refine
+        self.refine, self.ior = refine, ior
         self.weights = load_normal_net(weights) if weights is not None else None
         self.point_net = load_point_net(point_weights) if point_weights is not None else None
         if self.weights is not None:
@@ -89,7 +90,7 @@ class _ShapeEvaluation:
     def scene(self, i: int) -> dict:
         """{"index": i, row: metrics} for test scene i, on `reconstruct`'s path: the scene as a
         capture, its stored hull, `run_normal_stage`, `surface_from_normals`."""
-        capture, hull = self.dataset.capture(i), self.dataset.hull(i)
+        capture, hull = self.dataset.capture(i, self.ior), self.dataset.hull(i)
         gt = self.dataset.meshes(i)[0]
         sample = self.dataset[i]
         record = {"index": i, "vh": self._scored(hull.mesh, gt, capture)}

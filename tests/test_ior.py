@@ -1,0 +1,121 @@
+"""The index of refraction a run assumes (issue 22): `reconstruct --ior X` over scene.json's, and the
+IoR the evaluations hold for every scene (`eval-normals --ior`, `eval-shapes --ior`)."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import trimesh
+from typer.testing import CliRunner
+
+import lookingglass.pipeline as pipeline
+from lookingglass import cli
+from lookingglass.config import PipelineConfig, parse_ior
+from lookingglass.data.envmaps import procedural_envmap
+from lookingglass.data.rigs import paper_rig
+from lookingglass.data.synthetic import render_capture
+from lookingglass.errors import ConfigError, LookingGlassError
+from lookingglass.hull import HullConfig
+from lookingglass.render.tracer import RenderConfig
+from lookingglass.weights import shipped_weights
+
+QUICK = PipelineConfig(stop_after="visual_hull", device="cpu", hull=HullConfig(resolution=32, coarse_resolution=16,
+                                                                               subdivision_iterations=1))
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """A 5-view 64x48 rendering of a glass sphere at IoR 1.5 (scene.json says 1.5)."""
+    root = tmp_path_factory.mktemp("ior")
+    env = procedural_envmap(np.random.default_rng(0), 32)
+    render_capture(trimesh.creation.icosphere(subdivisions=3, radius=0.7), env, paper_rig(5, 0, width=64, height=48),
+                   root / "scene", RenderConfig(ior=1.5, samples_per_axis=1))
+    assert json.loads((root / "scene" / "scene.json").read_text())["ior"] == 1.5
+    return root / "scene"
+
+
+def test_parse_ior():
+    assert parse_ior("scene") == "scene" and parse_ior("1.6") == 1.6 and parse_ior(" 3 ") == 3.0
+    for bad, said in [("0.9", "got 0.9"), ("3.01", "got 3.01"), ("abc", "got 'abc'"), ("nan", "got nan"),
+                      ("auto", "got 'auto'"), ("", "got ''")]:
+        with pytest.raises(ConfigError, match="index of refraction from 1.0 to 3.0") as info:
+            parse_ior(bad, "--ior")
+        assert said in str(info.value) and str(info.value).startswith("--ior must be")
+
+
+def test_config_checks_and_round_trips_the_ior(tmp_path):
+    config = PipelineConfig(ior="1.6", ior_range=(1.4, 1.55))
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({"config": pipeline.config_to_dict(config)}))  # as report.json holds it
+    again = PipelineConfig.from_json(path)
+    assert again == config and again.ior == "1.6" and again.ior_range == (1.4, 1.55)
+    assert PipelineConfig().ior == "scene" and PipelineConfig().ior_range == (1.3, 1.7)
+    for bad, said in [({"ior": "0.9"}, "got 0.9"), ({"ior": "abc"}, "got 'abc'"),
+                      ({"ior_range": (1.7, 1.3)}, "ior_range: LO must be below HI, got 1.7 1.3"),
+                      ({"ior_range": (1.5, 1.5)}, "LO must be below HI"), ({"ior_range": (1.3, 3.2)}, "got 3.2")]:
+        with pytest.raises(ConfigError) as info:
+            PipelineConfig(**bad)
+        assert said in str(info.value)
+    path.write_text(json.dumps({"config": {"ior": "2.5x"}}))
+    with pytest.raises(LookingGlassError, match="2.5x"):
+        PipelineConfig.from_json(path)
+
+
+def test_reconstruct_ior_overrides_scene_json(scene, tmp_path):
+    """report.json says the IoR used and where it came from: scene.json's 1.5, or --ior's 1.6."""
+    own = pipeline.reconstruct(scene, tmp_path / "own", QUICK)
+    assert (own["ior"], own["ior_source"]) == (1.5, "scene")
+    result = CliRunner().invoke(cli.app, ["reconstruct", str(scene), "--out", str(tmp_path / "given"), "--quiet",
+                                          "--stop-after", "visual_hull", "--hull-resolution", "32", "--ior", "1.6",
+                                          "--device", "cpu"])
+    assert result.exit_code == 0, result.output
+    report = json.loads((tmp_path / "given" / "report.json").read_text())
+    assert (report["ior"], report["ior_source"], report["config"]["ior"]) == (1.6, "config", "1.6")
+    assert report["completed"] and report["stages_run"] == ["visual_hull"]
+
+
+def test_every_stage_assumes_the_given_ior(scene, tmp_path, monkeypatch):
+    """The normals stage (and the stages after it, handed the same capture) see --ior's value."""
+    if shipped_weights(5)[0] is None:
+        pytest.skip("no weights ship in this build")
+    seen = []
+
+    def normals(capture, *args, **kwargs):
+        seen.append(capture.ior)
+        raise LookingGlassError("stop here")
+
+    monkeypatch.setattr(pipeline, "run_normal_stage", normals)
+    with pytest.raises(LookingGlassError, match="stop here"):
+        pipeline.reconstruct(scene, tmp_path / "o", dataclasses.replace(QUICK, stop_after="refine", ior="1.35"))
+    assert seen == [1.35]
+
+
+def test_eval_commands_hold_the_ior(tmp_path, monkeypatch):
+    """eval-normals / eval-shapes --ior X hand X to the evaluation and record it in their JSON;
+    without it each scene's own IoR is used (None); a bad value is refused before any work."""
+    seen = {}
+    monkeypatch.setattr("lookingglass.data.torch_dataset.TransparentSceneDataset", lambda *a, **k: "dataset")
+    monkeypatch.setattr("lookingglass.normals.evaluate.evaluate_normals",
+                        lambda *a, **k: seen.setdefault("normals", []).append(k["ior"]) or {})
+    monkeypatch.setattr("lookingglass.points.evaluate.evaluate_shapes",
+                        lambda *a, **k: seen.setdefault("shapes", []).append(k["ior"]) or {"rows": {}, "scenes": []})
+    runner = CliRunner()
+    weights = ["--weights", "wr+cv=w.safetensors"]
+    for ior in (["--ior", "1.4723"], []):
+        out = tmp_path / f"normals{len(ior)}.json"
+        result = runner.invoke(cli.app, ["eval-normals", "--data", "d", *weights, "--device", "cpu", "--json", str(out),
+                                         "--quiet", *ior])
+        assert result.exit_code == 0, result.output
+        assert json.loads(out.read_text())["settings"]["ior"] == (1.4723 if ior else "scene")
+        out = tmp_path / f"shapes{len(ior)}.json"
+        result = runner.invoke(cli.app, ["eval-shapes", "--data", "d", "--weights", "w.safetensors", "--device", "cpu",
+                                         "--json", str(out), "--quiet", "--point-weights", "p.safetensors", *ior])
+        assert result.exit_code == 0, result.output
+        settings = json.loads(out.read_text())["settings"]
+        assert settings.get("ior") == (1.4723 if ior else None)  # absent without --ior: earlier JSONs resume
+    assert seen == {"normals": [1.4723, None], "shapes": [1.4723, None]}
+    for command in (["eval-normals", *weights], ["eval-shapes"]):
+        result = runner.invoke(cli.app, [*command, "--data", "d", "--device", "cpu", "--ior", "0.8"])
+        assert isinstance(result.exception, ConfigError) and "--ior must be" in str(result.exception)
+        assert "got 0.8" in str(result.exception)
