@@ -39,6 +39,10 @@ def help_line(command: str, flag: str) -> str:
     ("train-points", "--net.num-points", ["(paper: 20000)", "[default: 4096]"]),
     ("train-points", "--checkpoint-every", ["[default: 100]"]),
     ("generate", "--shape.target-faces", ["[default: 24000]"]),
+    ("generate", "--ior-range", ["from 1.0 to 3.0", "[default: 1.4723, 1.4723]"]),
+    ("generate", "--ior-per-shape", ["[default: 1]"]),
+    ("reconstruct", "--ior", ["scene (scene.json's)", "[default: scene]"]),
+    ("reconstruct", "--ior-range", ["LO < HI", "[default: 1.3, 1.7]"]),
 ])
 def test_help_lists_config_fields_with_the_presets_defaults(command, flag, shown):
     line = help_line(command, flag)
@@ -53,6 +57,14 @@ def test_help_lists_config_fields_with_the_presets_defaults(command, flag, shown
     (["train-points", "--data", "d", "--normals", "n", "--out", "o", "--loss", "view", "--strategy", "AV"],
      "--loss=view, --strategy=AV:"),
     (["generate", "--out", "o", "--scenes", "1", "--samples-per-axis", "0"], "samples_per_axis must be at least 1"),
+    (["reconstruct", "no_scene", "--out", "o", "--ior", "0.9"],
+     "--ior=0.9: ior must be an index of refraction from 1.0 to 3.0 (glass is about 1.5), got 0.9"),
+    (["reconstruct", "no_scene", "--out", "o", "--ior", "abc"],
+     "--ior=abc: ior must be scene or an index of refraction"),
+    (["reconstruct", "no_scene", "--out", "o", "--ior-range", "1.7", "1.3"],
+     "--ior-range=1.7 1.3: ior_range: LO must be below HI, got 1.7 1.3"),
+    (["generate", "--out", "o", "--scenes", "1", "--ior-range", "1.3", "3.5"], "ior_range must be an index of "
+                                                                                 "refraction from 1.0 to 3.0"),
 ])
 def test_out_of_range_flag_is_one_line_naming_the_field(tmp_path, args, said):
     proc = subprocess.run([*CLI, *args], capture_output=True, text=True, timeout=120, cwd=tmp_path, env=WIDE)

@@ -52,6 +52,18 @@ def made(tmp_path_factory, shared_envmaps):
     return root
 
 
+VARIED = dataclasses.replace(TINY, ior_range=(1.3, 1.7), ior_per_shape=2)
+
+
+@pytest.fixture(scope="module")
+def varied(tmp_path_factory, shared_envmaps):
+    """Scenes 0 and 1 of a split with two IoRs in [1.3, 1.7] per shape, `made`'s seed and split."""
+    root = tmp_path_factory.mktemp("dataset") / "varied"
+    summary = generate_dataset(root, 2, views=VIEWS, split="train", seed=SEED, config=VARIED, workers=1)
+    assert summary["made"] == [0, 1]
+    return root
+
+
 def test_generate_writes_compact_scene_files(made):
     cfg = json.loads((made / "train" / "config.json").read_text())
     assert cfg["views"] == VIEWS and cfg["seed"] == SEED and cfg["config"]["width"] == 64
@@ -165,10 +177,12 @@ def _angle_deg(a, b):
     return np.degrees(np.arccos(np.clip(cos, -1, 1)))
 
 
-def test_gt_normals_match_an_independent_ray_cast(made):
+@pytest.mark.parametrize("split_name, index", [("made", 0), ("varied", 1)])
+def test_gt_normals_match_an_independent_ray_cast(split_name, index, request):
+    """Also for a drawn IoR: the second hits follow Snell's law with meta.json's IoR."""
     from scipy import ndimage
 
-    d = scene(made, 0)
+    d = scene(request.getfixturevalue(split_name), index)
     maps, meta, mesh = load_maps(d), load_scene_meta(d), load_scene_mesh(d, "mesh")
     rng = np.random.default_rng(0)
     interior = np.stack([ndimage.binary_erosion(m, iterations=2) for m in maps["mask"]])
@@ -196,6 +210,108 @@ def test_gt_normals_match_an_independent_ray_cast(made):
     err = _angle_deg(stored_n2, n2_cam)
     # (a ray grazing a triangle edge may pick the neighbour in float32 Embree vs float64 here)
     assert np.median(err) < 0.05 and (err < 0.1).mean() >= 0.9, err
+
+
+def test_ior_per_shape_gives_each_shape_its_own_iors(made, varied):
+    """ior_per_shape 2, ior_range [1.3, 1.7]: scenes 0 and 1 show scene 0's shape, rig and map
+    (that of the default split with the same seed) with two IoRs drawn in the range, the renderer
+    and the hull's tracing at that IoR; the default split's scene keeps the glass's 1.4723."""
+    base = load_scene_meta(scene(made, 0))
+    assert base["ior"] == 1.4723 and "shape_index" not in base
+    metas = [load_scene_meta(scene(varied, i)) for i in (0, 1)]
+    iors = [m["ior"] for m in metas]
+    assert all(1.3 <= x <= 1.7 for x in iors) and abs(iors[0] - iors[1]) > 1e-3, iors
+    assert iors == [1.5812, 1.6302]  # each scene's own stream: the same on every run
+    gt = load_scene_mesh(scene(made, 0), "mesh").vertices
+    maps0 = load_maps(scene(made, 0))
+    for i, meta in enumerate(metas):
+        assert meta["index"] == i and meta["shape_index"] == 0
+        assert all(meta[key] == base[key] for key in ("seeds", "cameras", "envmap", "shape"))
+        assert np.array_equal(load_scene_mesh(scene(varied, i), "mesh").vertices, gt)
+        assert np.array_equal(load_scene_mesh(scene(varied, i), "hull").vertices,
+                              load_scene_mesh(scene(made, 0), "hull").vertices)
+        maps = load_maps(scene(varied, i))
+        for key in ("mask", "n1", "vh_mask", "vh_n1"):  # the first hits do not see the IoR
+            assert np.array_equal(maps[key], maps0[key]), key
+        for key in ("image", "n2", "vh_n2"):  # the refracted paths do
+            assert not np.array_equal(maps[key], maps0[key]), key
+    # the dataset serves each scene's own IoR, or one an evaluation holds
+    ds = TransparentSceneDataset(varied, "train")
+    assert [ds.capture(i).ior for i in (0, 1)] == iors
+    held = ds.capture(1, 1.4723)
+    assert held.ior == 1.4723 and held.spec.ior == iors[1]
+    with pytest.raises(LookingGlassError, match="from 1.0 to 3.0"):
+        ds.capture(0, 0.9)
+    cfg = json.loads((varied / "train" / "config.json").read_text())["config"]
+    assert cfg["ior_range"] == [1.3, 1.7] and cfg["ior_per_shape"] == 2 and "ior" not in cfg
+
+
+def test_normal_evaluation_holds_the_ior(varied):
+    """eval-normals --ior 1.4723 on scene 0 (IoR 1.5812): the hull's inputs and the rendering layer
+    take 1.4723, the ground truth stays the scene's own, so even the true normals render worse;
+    eval-shapes' stages get the capture at 1.4723 too."""
+    from lookingglass.normals.evaluate import _NormalEvaluation
+
+    ds = TransparentSceneDataset(varied, "train")
+    own = _NormalEvaluation(ds, {}, None).scene(0)
+    held = _NormalEvaluation(ds, {}, None, ior=1.4723).scene(0)
+    own, held = ({k: v.summary() for k, v in rows.items()} for rows in (own, held))
+    assert own["gt"]["n1_mean"] == held["gt"]["n1_mean"] < 1e-3 and own["gt"]["n2_mean"] < 1e-3  # the same truth
+    assert held["gt"]["render_error"] > own["gt"]["render_error"]  # 0.1094 against 0.1079 here
+    # the hull's first hits do not see the IoR; its second hits, traced at 1.4723, are further from
+    # the truth's (25.8 -> 26.1 degrees mean here)
+    assert held["vh"]["n1_mean"] == own["vh"]["n1_mean"]
+    assert held["vh"]["n2_mean"] > own["vh"]["n2_mean"] + 0.1
+
+    # eval-shapes hands its stages the same held capture (stopped once it has it)
+    from lookingglass.points.evaluate import _ShapeEvaluation
+    from lookingglass.points.stage import SurfaceConfig
+
+    class Stop(Exception):
+        pass
+
+    seen = []
+
+    def capture(i, ior=None):
+        seen.append(TransparentSceneDataset.capture(ds, i, ior).ior)
+        raise Stop
+
+    ds.capture = capture
+    for ior in (1.4723, None):
+        with pytest.raises(Stop):
+            _ShapeEvaluation(ds, None, None, ("RE",), None, SurfaceConfig(), ior=ior).scene(0)
+    assert seen == [1.4723, 1.5812]
+
+
+def test_split_written_before_the_ior_range_still_resumes(made, tmp_path):
+    """A config.json with the single "ior" and without the keys added since reads as the default
+    config: the folder resumes (nothing redone) and loads; other IoR settings are refused."""
+    root = tmp_path / "old"
+    shutil.copytree(made, root)
+    path = root / "train" / "config.json"
+    saved = json.loads(path.read_text())
+    cfg = saved["config"]
+    for key in ("ior_range", "ior_per_shape", "family_weights", "hull_mask_scale"):
+        cfg.pop(key)
+    cfg["ior"] = 1.4723
+    path.write_text(json.dumps(saved))
+    summary = generate_dataset(root, SCENES, views=VIEWS, split="train", seed=SEED, config=TINY, workers=1)
+    assert summary["made"] == [] and summary["skipped"] == SCENES
+    assert TransparentSceneDataset(root, "train").config == TINY
+    with pytest.raises(LookingGlassError, match="ior_per_shape, config.ior_range"):
+        generate_dataset(root, SCENES, views=VIEWS, split="train", seed=SEED, config=VARIED)
+
+
+@pytest.mark.parametrize("bad, said", [
+    ({"ior_range": (1.7, 1.3)}, "ior_range: LO must be at most HI, got 1.7 1.3"),
+    ({"ior_range": (0.5, 1.3)}, "ior_range must be an index of refraction from 1.0 to 3.0"),
+    ({"ior_range": (1.3, 3.5)}, "got 3.5"),
+    ({"ior_per_shape": 0}, "ior_per_shape must be at least 1"),
+])
+def test_bad_ior_settings_are_refused(bad, said):
+    with pytest.raises(LookingGlassError) as info:
+        DatasetConfig(**bad)
+    assert said in str(info.value)
 
 
 def test_visual_hull_contains_the_object(made):

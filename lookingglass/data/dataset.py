@@ -64,7 +64,8 @@ import numpy as np
 from ..configio import check_ranges, setting
 from ..errors import ConfigError, LookingGlassError
 from ..hull import HullConfig
-from ..physics.constants import IOR_AIR, IOR_GLASS, PAPER_RENDER_FOV_X_DEG as PAPER_FOV_X_DEG
+from ..physics.constants import (IOR_AIR, IOR_GLASS, IOR_MAX, IOR_MIN, PAPER_RENDER_FOV_X_DEG as PAPER_FOV_X_DEG,
+                                 check_ior_range)
 from ..parallel import map_in_processes, worker_count
 from .shapes import ShapeConfig
 
@@ -89,7 +90,12 @@ class DatasetConfig:
     envmap_height: the environment map is rendered and served at envmap_height x 2 envmap_height.
     samples_per_axis: anti-aliasing, s x s stratified jittered samples per pixel.
     max_depth, prune_threshold: light transport (see `render.tracer.RenderConfig`).
-    ior, ext_ior: glass and air (DESIGN.md).
+    ior_range: the glass's index of refraction (LO, HI): LO == HI (the default, DESIGN.md's glass)
+        every scene's; LO < HI each scene's drawn uniformly in it (`scene_ior`, meta.json's "ior").
+    ior_per_shape: K; scene k shows the shape, rig, environment map and render seed of scene k // K
+        (of the same seed and split) with its own IoR draw: K IoRs per shape, as the paper's
+        variable-IoR test set (its supplement: 5 IoRs in [1.3, 1.7] per test shape).
+    ext_ior: air (DESIGN.md).
     p_procedural: chance that a scene's map is procedural rather than an augmented natural one.
     test_envmaps: natural maps (file names) kept for the test split; training uses the others.
     family_weights: relative frequency of the shape families (families.FAMILIES order: procedural,
@@ -111,8 +117,12 @@ class DatasetConfig:
     max_depth: int = setting(64, "Most interfaces a light path crosses.", range=(1, None))
     prune_threshold: float = setting(1e-3, "Light branches whose throughput falls below this are dropped.",
                                      range=(0, None))
-    ior: float = setting(IOR_GLASS, "Index of refraction of the glass.", range=(1, None))
-    ext_ior: float = setting(IOR_AIR, "Index of refraction around it.", range=(1, None))
+    ior_range: tuple[float, float] = setting(  # checked by check_ior_range, the bounds in the help
+        (IOR_GLASS, IOR_GLASS), f"The glass's index of refraction LO HI, from {IOR_MIN} to {IOR_MAX}: LO = HI every "
+        "scene's, LO < HI each scene's drawn uniformly in it.")
+    ior_per_shape: int = setting(1, "K: scene k shows the shape, rig and map of scene k // K with its own IoR draw.",
+                                 range=(1, None))
+    ext_ior: float = setting(IOR_AIR, "Index of refraction around the glass.", range=(1, None))
     p_procedural: float = setting(0.5, "Chance that a scene's environment map is procedural.", range=(0, 1))
     test_envmaps: tuple[str, ...] = ("forest_slope_1k.hdr", "potsdamer_platz_1k.hdr")
     family_weights: tuple[float, float, float, float, float] = setting(
@@ -129,6 +139,7 @@ class DatasetConfig:
             raise ConfigError("family_weights: at least one family needs a positive weight")
         if self.hull_mask_scale[0] > self.hull_mask_scale[1]:
             raise ConfigError(f"hull_mask_scale: LO must be <= HI, got {self.hull_mask_scale}")
+        check_ior_range(self.ior_range, "ior_range", ConfigError, equal_ok=True)
 
     def to_dict(self) -> dict:
         """JSON-normalized dict (tuples as lists), the form config.json holds."""
@@ -136,8 +147,12 @@ class DatasetConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> "DatasetConfig":
+        """The config a config.json holds; one written before `ior_range` has its single "ior"
+        (read as the range of that one value) and lacks the keys added since (their defaults)."""
         from ..configio import config_from_dict
 
+        if isinstance(data, dict) and "ior" in data and "ior_range" not in data:
+            data = {**{k: v for k, v in data.items() if k != "ior"}, "ior_range": [data["ior"], data["ior"]]}
         return config_from_dict(cls, data, where="dataset config")
 
 
@@ -215,6 +230,17 @@ def scene_draws(seeds: dict[str, int], config: DatasetConfig) -> tuple[str, floa
     return family, round(scale, 3)
 
 
+def scene_ior(seed: int, split: str, index: int, config: DatasetConfig) -> float:
+    """Scene `index`'s index of refraction: config.ior_range's one value, or a uniform draw in it
+    (to 1e-4) from a stream of its own, keyed by the scene's own index (not its shape's, so the
+    `ior_per_shape` scenes of one shape differ) and not by the attempt (a redrawn shape keeps it)."""
+    lo, hi = config.ior_range
+    if lo == hi:
+        return float(lo)
+    rng = np.random.default_rng([scene_seeds(seed, split, index)["shape"], 11])  # 11: its own stream
+    return round(float(rng.uniform(lo, hi)), 4)
+
+
 def split_envmap_names(config: DatasetConfig, split: str, folder=None) -> list[str] | None:
     """Natural map names a split may use: test -> config.test_envmaps, train -> the others.
     None when the folder has no natural maps (the sampler then errors unless p_procedural = 1)."""
@@ -277,7 +303,9 @@ def make_scene(index: int, split: str, seed: int, views: int, config: DatasetCon
     from .families import random_family_shape
     from .shapes import random_shape, shape_stats
 
-    seeds = scene_seeds(seed, split, index, attempt)
+    shape_index = index // config.ior_per_shape  # the scene whose shape, rig, map and render seed this one shows
+    seeds = scene_seeds(seed, split, shape_index, attempt)
+    ior = scene_ior(seed, split, index, config)
     timings: dict[str, float] = {}
     clock = [time.perf_counter()]
 
@@ -302,7 +330,7 @@ def make_scene(index: int, split: str, seed: int, views: int, config: DatasetCon
         rig = paper_rig_params(views, np.random.default_rng(seeds["rig"]))
         cams = Cameras.look_at(rig["origin"], rig["target"], rig["up"], config.fov_x_deg,
                                config.width, config.height)
-        rcfg = RenderConfig(ior=config.ior, ext_ior=config.ext_ior, max_depth=config.max_depth,
+        rcfg = RenderConfig(ior=ior, ext_ior=config.ext_ior, max_depth=config.max_depth,
                             samples_per_axis=config.samples_per_axis, seed=seeds["render"],
                             prune_threshold=config.prune_threshold, threads=1)
         res = render_views(mesh, EnvironmentMap(torch.from_numpy(np.ascontiguousarray(env))), cams, rcfg)
@@ -318,7 +346,7 @@ def make_scene(index: int, split: str, seed: int, views: int, config: DatasetCon
         vh = carve_visual_hull(hull_masks, hull_cams, hcfg)
         hull = _float32_vertices(vh.mesh)
         lap("hull")
-        tb = trace_two_bounce(hull, cams, config.ior, config.ext_ior, threads=1)
+        tb = trace_two_bounce(hull, cams, ior, config.ext_ior, threads=1)
         lap("hull_two_bounce")
 
     image = res.image.numpy()
@@ -331,7 +359,8 @@ def make_scene(index: int, split: str, seed: int, views: int, config: DatasetCon
     meta = {
         "format": FORMAT_VERSION, "index": int(index), "split": split, "dataset_seed": int(seed),
         "attempt": int(attempt), "seeds": seeds, "views": int(views),
-        "width": config.width, "height": config.height, "ior": config.ior, "ext_ior": config.ext_ior,
+        **({"shape_index": shape_index} if config.ior_per_shape > 1 else {}),  # the shipped splits' meta as it was
+        "width": config.width, "height": config.height, "ior": ior, "ext_ior": config.ext_ior,
         "cameras": {"origin": rig["origin"].tolist(), "target": rig["target"].tolist(), "up": rig["up"].tolist(),
                     "fov_x_deg": [float(config.fov_x_deg)] * views,
                     "polar_deg": rig["polar_deg"].tolist(), "azimuth_deg": rig["azimuth_deg"].tolist()},
@@ -417,6 +446,16 @@ def _diff_keys(a, b, prefix="") -> list[str]:
     return [] if a == b else [prefix.rstrip(".")]
 
 
+def _as_read(saved: dict) -> dict:
+    """A split's config.json as this version reads it: a config written before a key existed (or
+    before `ior_range` replaced "ior") compares as that key's default, so its folder still resumes."""
+    try:
+        config = DatasetConfig.from_dict(saved["config"]).to_dict()
+    except (KeyError, TypeError, ValueError, LookingGlassError):
+        return saved  # not a config this version reads: compared as it is, the difference is reported
+    return {**saved, "config": config}
+
+
 def prepare_split_dir(out, split: str, seed: int, views: int, config: DatasetConfig) -> Path:
     """Create OUT/SPLIT with its config.json, or check that an existing one matches."""
     from ..fileio import write_json
@@ -429,7 +468,7 @@ def prepare_split_dir(out, split: str, seed: int, views: int, config: DatasetCon
             saved = json.loads(path.read_text())
         except ValueError:
             raise LookingGlassError("cannot parse the dataset config; remove it or use another --out", path) from None
-        diff = _diff_keys(saved, wanted)
+        diff = _diff_keys(_as_read(saved), wanted)
         if diff:
             raise LookingGlassError(
                 f"this folder holds scenes made with other settings (differs in: {', '.join(diff[:8])}"
@@ -553,4 +592,4 @@ def scene_cameras(meta: dict, dtype=None):
 
 __all__ = ["DatasetConfig", "SceneData", "generate_dataset", "generate_scene", "make_scene", "write_scene",
            "parse_shard", "rig_subset", "scene_seeds", "scene_name", "is_finished", "load_maps", "load_scene_meta",
-           "load_scene_mesh", "scene_cameras", "split_envmap_names"]
+           "load_scene_mesh", "scene_cameras", "scene_ior", "split_envmap_names"]
