@@ -1,6 +1,7 @@
 """What the command-line tests share: running `lookingglass` in a subprocess, and a small rendered
 capture to run it on."""
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -9,7 +10,9 @@ import numpy as np
 import trimesh
 
 from lookingglass.capture.images import write_image
+from lookingglass.capture.scene import load_capture
 from lookingglass.data.envmaps import procedural_envmap
+from lookingglass.render.tracer import trace_two_bounce
 
 CLI = [sys.executable, "-m", "lookingglass.cli"]
 
@@ -31,3 +34,28 @@ def render_torus_scene(root: Path) -> Path:
     write_image(root / "env.hdr", procedural_envmap(np.random.default_rng(0), 64))
     run("render", root / "gt.ply", "--envmap", root / "env.hdr", "--rig", 10, "--size", 120, 90, "--out", root / "scene")
     return root
+
+
+def normal_errors(scene, gt_path, out, views: int) -> tuple[dict, dict]:
+    """The normals stage of `out`/report.json and the median angle errors (N1, N2) in degrees of
+    the predicted normals ("pred") and of the hull's ("hull") against the ground truth traced at
+    the network's resolution, over pixels both see."""
+    report = json.loads((out / "report.json").read_text())
+    stage = next(s for s in report["stages"] if s["name"] == "normals")
+    maps = [np.load(out / "normals" / f"view_{v:02d}.npz") for v in range(views)]
+    assert (out / "normals" / f"view_{views - 1:02d}.png").exists()
+    n1, n2, mask = (np.stack([v[k] for v in maps]) for k in ("n1", "n2", "mask"))
+    width, height = stage["network_size"]
+    cams = load_capture(scene).cameras.with_resolution(width, height)
+    gt = trace_two_bounce(trimesh.load(gt_path, force="mesh"), cams)
+    hull = trace_two_bounce(trimesh.load(out / "visual_hull.ply", force="mesh"), cams)
+
+    def median_angle(a, b, m):
+        a, b = a[m], b[m]  # off the masks the normals are zero
+        cos = np.clip((a * b).sum(-1) / np.linalg.norm(a, axis=-1) / np.linalg.norm(b, axis=-1), -1, 1)
+        return float(np.degrees(np.median(np.arccos(cos))))
+
+    m1 = mask & gt.mask.numpy() & hull.mask.numpy()
+    m2 = m1 & gt.valid.numpy() & hull.hit2.numpy()
+    return stage, {name: (median_angle(a1, gt.normal1.numpy(), m1), median_angle(a2, gt.normal2.numpy(), m2))
+                   for name, (a1, a2) in {"pred": (n1, n2), "hull": (hull.normal1.numpy(), hull.normal2.numpy())}.items()}

@@ -10,7 +10,7 @@ import trimesh
 from lookingglass.metrics import shape_metrics
 from lookingglass.weights import shipped_weights
 
-from cli_helpers import CLI, render_torus_scene, run
+from cli_helpers import CLI, normal_errors, render_torus_scene, run
 
 
 @pytest.fixture(scope="module")
@@ -48,34 +48,6 @@ def test_render_reconstruct_evaluate(rendered_scene):
     assert hull.volume >= gt.volume * 0.99
 
 
-def _normal_errors(scene, gt_path, out, views: int) -> tuple[dict, dict]:
-    """The normals stage of `out`/report.json and the median angle errors (N1, N2) in degrees of
-    the predicted normals ("pred") and of the hull's ("hull") against the ground truth traced at
-    the network's resolution, over pixels both see."""
-    from lookingglass.capture.scene import load_capture
-    from lookingglass.render.tracer import trace_two_bounce
-
-    report = json.loads((out / "report.json").read_text())
-    stage = next(s for s in report["stages"] if s["name"] == "normals")
-    maps = [np.load(out / "normals" / f"view_{v:02d}.npz") for v in range(views)]
-    assert (out / "normals" / f"view_{views - 1:02d}.png").exists()
-    n1, n2, mask = (np.stack([v[k] for v in maps]) for k in ("n1", "n2", "mask"))
-    width, height = stage["network_size"]
-    cams = load_capture(scene).cameras.with_resolution(width, height)
-    gt = trace_two_bounce(trimesh.load(gt_path, force="mesh"), cams)
-    hull = trace_two_bounce(trimesh.load(out / "visual_hull.ply", force="mesh"), cams)
-
-    def median_angle(a, b, m):
-        a, b = a[m], b[m]  # off the masks the normals are zero
-        cos = np.clip((a * b).sum(-1) / np.linalg.norm(a, axis=-1) / np.linalg.norm(b, axis=-1), -1, 1)
-        return float(np.degrees(np.median(np.arccos(cos))))
-
-    m1 = mask & gt.mask.numpy() & hull.mask.numpy()
-    m2 = m1 & gt.valid.numpy() & hull.hit2.numpy()
-    return stage, {name: (median_angle(a1, gt.normal1.numpy(), m1), median_angle(a2, gt.normal2.numpy(), m2))
-                   for name, (a1, a2) in {"pred": (n1, n2), "hull": (hull.normal1.numpy(), hull.normal2.numpy())}.items()}
-
-
 @pytest.mark.skipif(shipped_weights(10)[0] is None, reason="no normal-network weights ship in this build")
 def test_reconstruct_normals_beat_the_hull(rendered_scene):
     """The shipped 10-view weights on a shape they never saw (a tilted torus, not a procedural
@@ -86,7 +58,7 @@ def test_reconstruct_normals_beat_the_hull(rendered_scene):
     out = root / "out"
     if not (out / "report.json").exists():
         run("reconstruct", root / "scene", "--out", out, "--quiet")
-    stage, err = _normal_errors(root / "scene", root / "gt.ply", out, 10)
+    stage, err = normal_errors(root / "scene", root / "gt.ply", out, 10)
     assert stage["trained_views"] == 10
     assert stage["render_error"] < 0.8 * stage["render_error_vh"]
     assert err["pred"][0] < err["hull"][0], err
@@ -104,7 +76,7 @@ def test_five_view_capture_uses_the_five_view_weights(rendered_scene, tmp_path):
     out = tmp_path / "out"
     # the networks' test: the refine stage (tests/test_refine.py, and the 10-view test above) is skipped
     run("reconstruct", tmp_path / "scene", "--out", out, "--quiet", "--stop-after", "surface")
-    stage, err = _normal_errors(tmp_path / "scene", root / "gt.ply", out, 5)
+    stage, err = normal_errors(tmp_path / "scene", root / "gt.ply", out, 5)
     assert stage["trained_views"] == 5 and "note" not in stage
     assert err["pred"][0] < err["hull"][0], err
     assert err["pred"][1] < err["hull"][1], err
