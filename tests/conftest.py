@@ -16,3 +16,17 @@ def shared_envmaps() -> list[Path]:
     if not maps:
         pytest.skip("../shared/envmaps not found")
     return maps
+
+
+@pytest.fixture(scope="session")
+def torus_run(tmp_path_factory) -> Path:
+    """ROOT with gt.ply, env.hdr and scene/ (`cli_helpers.render_torus_scene`: a 10-view 120x90
+    capture of a tilted torus) and out/: `lookingglass reconstruct scene --out out` with the
+    defaults, run once for the session (tests/test_cli.py and tests/test_report.py read it; a test
+    that changes anything in it works on a copy)."""
+    from cli_helpers import render_torus_scene, run
+
+    root = tmp_path_factory.mktemp("torus")
+    render_torus_scene(root)
+    run("reconstruct", root / "scene", "--out", root / "out", "--quiet")
+    return root

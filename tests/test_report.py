@@ -5,6 +5,7 @@ import io
 import json
 import os
 import re
+import shutil
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ from lookingglass.report.browser import find_chromium, load_page
 from lookingglass.report.build import COLORMAP, colormap, display_mesh, nice_ceiling
 from lookingglass.weights import shipped_weights
 
-from cli_helpers import render_torus_scene, run
+from cli_helpers import run
 
 NO_CHROMIUM = ("headless Chromium is not installed (Debian's `chromium` package; scripts/setup.sh installs it "
                "when run as root or with sudo; LOOKINGGLASS_CHROMIUM names another binary)")
@@ -23,13 +24,12 @@ NO_CHROMIUM = ("headless Chromium is not installed (Debian's `chromium` package;
 
 
 @pytest.fixture(scope="module")
-def small_run(tmp_path_factory):
-    """A 10-view 120x90 capture of a tilted torus, reconstructed (few latent steps) and evaluated
-    against its ground truth, which rewrites the report with the ground truth in it."""
+def small_run(torus_run, tmp_path_factory):
+    """The torus capture's reconstruction (conftest.py), copied and evaluated against its ground
+    truth, which rewrites the report with the ground truth in it."""
     root = tmp_path_factory.mktemp("report")
-    render_torus_scene(root)
-    run("reconstruct", root / "scene", "--out", root / "out", "--quiet", "--normals.latent.iterations-n2", 2,
-        "--normals.latent.iterations-both", 2)
+    shutil.copytree(torus_run / "out", root / "out")
+    shutil.copy(torus_run / "gt.ply", root / "gt.ply")
     first = (root / "out" / "report.html").read_text()
     proc = run("evaluate", root / "out" / "mesh.ply", root / "gt.ply")
     assert "report.html" in proc.stderr and json.loads(proc.stdout)["cd"] > 0
