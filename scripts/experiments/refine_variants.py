@@ -1,0 +1,39 @@
+"""The refine stage's settings compared on test-split scenes (docs/history.md, 2026-11-25: the silhouette weight at
+128x96): per scene, the PNet surface and the refined mesh of each variant, CD / CDN-mean against the ground truth
+and the worst view's silhouette IoU; "kept" says whether `reconstruct`'s keep check would keep it.
+
+Usage: .venv/bin/python scripts/experiments/refine_variants.py DATA 1,2,3,4,5,6
+(DATA/test a split made by `lookingglass generate --split test`; the shipped 10-view weights.)
+"""
+import sys
+import warnings
+
+import torch
+
+from lookingglass.data.torch_dataset import TransparentSceneDataset
+from lookingglass.metrics import shape_metrics
+from lookingglass.normals.stage import run_normal_stage
+from lookingglass.points.stage import SurfaceConfig, surface_from_normals
+from lookingglass.refine import RefineConfig, refine_surface, silhouette_iou
+from lookingglass.weights import load_normal_net, load_point_net, shipped_weights
+
+VARIANTS = {"weight 1": dict(silhouette_weight=1.0, silhouette_width=0), "weight 0.25": dict(silhouette_weight=0.25, silhouette_width=0),
+            "weight 0.07": dict(silhouette_weight=0.07, silhouette_width=0), "weight 0": dict(silhouette_weight=0.0),
+            "default": {}}
+
+warnings.simplefilter("ignore")
+torch.set_num_threads(1)
+ds = TransparentSceneDataset(sys.argv[1], "test", views=10)
+normal_net, point_net = load_normal_net(shipped_weights(10)[0]), load_point_net(shipped_weights(10, "points")[0])
+for i in map(int, sys.argv[2].split(",")):
+    capture, hull, truth = ds.capture(i), ds.hull(i), ds.meshes(i)[0]
+    normals = run_normal_stage(capture, hull, normal_net, None)
+    mesh, _ = surface_from_normals(hull, normals.maps, SurfaceConfig(), point_net)
+    m = shape_metrics(mesh, truth)
+    print(i, "surface", round(m["cd"], 2), round(m["cdn_mean"], 2),
+          round(float(silhouette_iou(mesh, capture.cameras, capture.masks).min()), 3), flush=True)
+    for name, settings in VARIANTS.items():
+        result = refine_surface(mesh, hull, capture.masks, capture.cameras, RefineConfig(**settings), capture=capture)
+        m = shape_metrics(result.refined, truth)
+        print(i, name, "kept" if result.report["kept"] == "refined" else "rejected", round(m["cd"], 2),
+              round(m["cdn_mean"], 2), round(min(result.report["silhouette_iou_after"]), 3), flush=True)
