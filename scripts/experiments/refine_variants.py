@@ -17,9 +17,10 @@ from lookingglass.points.stage import SurfaceConfig, surface_from_normals
 from lookingglass.refine import RefineConfig, refine_surface, silhouette_iou
 from lookingglass.weights import load_normal_net, load_point_net, shipped_weights
 
-VARIANTS = {"weight 1": dict(silhouette_weight=1.0, silhouette_width=0), "weight 0.25": dict(silhouette_weight=0.25, silhouette_width=0),
-            "weight 0.07": dict(silhouette_weight=0.07, silhouette_width=0), "weight 0": dict(silhouette_weight=0.0),
-            "default": {}}
+VARIANTS = {"weight 1": dict(silhouette_weight=1.0, silhouette_width=0),
+            "weight 0.25": dict(silhouette_weight=0.25, silhouette_width=0),
+            "weight 0.07": dict(silhouette_weight=0.07, silhouette_width=0),
+            "weight 0": dict(silhouette_weight=0.0), "default": {}}
 
 warnings.simplefilter("ignore")
 torch.set_num_threads(1)
