@@ -103,11 +103,13 @@ class RefineConfig:
                              range=(0, None))
     silhouette_weight: float = setting(1.0, "Weight of the rim and outside constraints at masks of silhouette_width "
                                             "pixels or wider.", range=(0, None))
-    silhouette_width: int = setting(480, "Mask width at and above which the silhouette weight applies whole; a narrower "
-                                         "mask's is scaled by (width / this)^2 (0: never scaled).", range=(0, None))
+    silhouette_width: int = setting(480, "Mask width at and above which the silhouette and fairing weights apply whole; "
+                                         "a narrower mask's are scaled by (width / this)^2 and width / this "
+                                         "(0: never scaled).", range=(0, None))
     smooth_weight: float = setting(1.0, "Weight of the Laplacian of the displacement (at edge 0.015).",
                                    range=(0, None))
-    fair_weight: float = setting(4.0, "Weight of the Laplacian of the positions (fairing; shrinks; at edge 0.015).",
+    fair_weight: float = setting(15.0, "Weight of the Laplacian of the positions (fairing; shrinks; at edge 0.015 and "
+                                       "masks silhouette_width wide, scaled by width / silhouette_width below).",
                                  range=(0, None))
     anchor_weight: float = setting(0.05, "Weight of the displacement from the start (keeps each pull local).",
                                    range=(0, None))
@@ -330,6 +332,13 @@ class _Constraints:
     outside: np.ndarray  # (V, N) bool
 
 
+def _width_scale(config: RefineConfig, mask_width: int) -> float:
+    """mask_width / silhouette_width, at most 1 (1 when silhouette_width is 0)."""
+    if config.silhouette_width <= 0:
+        return 1.0
+    return min(1.0, mask_width / config.silhouette_width)
+
+
 def silhouette_weight(config: RefineConfig, mask_width: int) -> float:
     """The silhouette terms' weight for masks `mask_width` pixels wide: config.silhouette_weight,
     scaled by (mask_width / silhouette_width)^2 below silhouette_width. A coarse mask's boundary is
@@ -337,9 +346,18 @@ def silhouette_weight(config: RefineConfig, mask_width: int) -> float:
     neighbourhood along. On scenes 1-6 of the 10-view test split (128x96) the whole weight made the
     surface worse (CDN-mean 13.0 -> 14.6, CD 7.75 -> 8.47), (128/480)^2 = 0.07 of it better (CDN-mean
     10.3, CD 7.80) with every view's IoU still >= 0.983; none left the worst IoU at 0.960."""
-    if config.silhouette_width <= 0 or mask_width >= config.silhouette_width:
-        return config.silhouette_weight
-    return config.silhouette_weight * (mask_width / config.silhouette_width) ** 2
+    return config.silhouette_weight * _width_scale(config, mask_width) ** 2
+
+
+def fair_weight(config: RefineConfig, mask_width: int) -> float:
+    """The fairing weight for masks `mask_width` pixels wide: config.fair_weight scaled by
+    mask_width / silhouette_width below silhouette_width. Fairing irons out PNet's lumps but shrinks
+    where the silhouettes do not hold the surface, and coarse masks hold it less: at 480x360 (val480,
+    six scenes) 4 / 16 / 32 gave CDN-mean 9.99 / 9.28 / 9.08 at the same CD, the key's worst IoU
+    0.978 / 0.976 / 0.969; at 128x96 with the silhouettes at 0.07, 16 cut CDN-mean further but shrank
+    the silhouettes (mean IoU -0.002 to -0.003) and the keep check refused it; 4 (= 15 x 128/480)
+    is kept there."""
+    return config.fair_weight * _width_scale(config, mask_width)
 
 
 def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.ndarray, cams: Cameras,
@@ -551,7 +569,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     # constraints ~1/edge per unit of contour: weights scaled by (REFERENCE_EDGE / edge)^3 act the
     # same at any edge length (the settings are the weights at the default edge length).
     scale = (REFERENCE_EDGE / config.edge_length) ** 3
-    w_smooth, w_fair = config.smooth_weight * scale, config.fair_weight * scale
+    w_smooth, w_fair = config.smooth_weight * scale, fair_weight(config, masks.shape[2]) * scale
     w_sil = silhouette_weight(config, masks.shape[2])
     c_smooth = w_smooth + w_fair
     c_diag = config.damping + config.anchor_weight
@@ -634,7 +652,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         "silhouette_iou_after": [round(float(v), 4) for v in iou_out],
         "silhouette_iou_mean": [round(mean_w(iou_in), 4), round(mean_w(iou_out), 4)],
         "view_weights": [round(float(w), 3) for w in weights],
-        "silhouette_weight": round(w_sil, 4),
+        "silhouette_weight": round(w_sil, 4), "fair_weight": round(fair_weight(config, masks.shape[2]), 4),
         **({"rerender_error": [round(mean_w(rerendered[k].error), 4) for k in ("input", "refined")],
             "rerender_error_views": {k: [round(float(e), 5) for e in r.error] for k, r in rerendered.items()}}
            if rerendered else {}),
