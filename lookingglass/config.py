@@ -41,7 +41,8 @@ class PipelineConfig:
     """Everything `reconstruct` needs. device: "cpu", "cuda", "cuda:1", ... ("auto" = cuda if
     present; resolved once, and every stage, the hull's carving included, runs there).
     stop_after: the last of STAGES to run. ior: `parse_ior`'s text, the IoR every stage assumes.
-    ior_range: (LO, HI), LO < HI, the IoRs an estimate of the IoR may take."""
+    ior_range: (LO, HI), LO < HI, checked but read by no stage yet: the range an estimate of the
+    IoR will search (issue 22; the estimate tried is not shipped, docs/results.md)."""
 
     hull: HullConfig = field(default_factory=HullConfig)
     normals: NormalStageConfig = field(default_factory=NormalStageConfig)
@@ -53,7 +54,8 @@ class PipelineConfig:
     ior: str = setting("scene", f"Index of refraction of the object: scene (scene.json's) or a number from {IOR_MIN} "
                        f"to {IOR_MAX}, used instead.")
     ior_range: tuple[float, float] = setting((1.3, 1.7), f"LO HI, LO < HI, from {IOR_MIN} to {IOR_MAX}: the indices of "
-                                             "refraction an estimate of the IoR may take.")
+                                             "refraction an estimate of the IoR will search (no stage reads it yet: "
+                                             "the IoR is not estimated).")
 
     def __post_init__(self) -> None:
         if self.stop_after not in STAGES:

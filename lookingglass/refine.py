@@ -569,8 +569,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     # constraints ~1/edge per unit of contour: weights scaled by (REFERENCE_EDGE / edge)^3 act the
     # same at any edge length (the settings are the weights at the default edge length).
     scale = (REFERENCE_EDGE / config.edge_length) ** 3
-    w_smooth, w_fair = config.smooth_weight * scale, fair_weight(config, masks.shape[2]) * scale
-    w_sil = silhouette_weight(config, masks.shape[2])
+    fair, w_sil = fair_weight(config, masks.shape[2]), silhouette_weight(config, masks.shape[2])
+    w_smooth, w_fair = config.smooth_weight * scale, fair * scale
     c_smooth = w_smooth + w_fair
     c_diag = config.damping + config.anchor_weight
     x = x0.copy()
@@ -652,7 +652,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         "silhouette_iou_after": [round(float(v), 4) for v in iou_out],
         "silhouette_iou_mean": [round(mean_w(iou_in), 4), round(mean_w(iou_out), 4)],
         "view_weights": [round(float(w), 3) for w in weights],
-        "silhouette_weight": round(w_sil, 4), "fair_weight": round(fair_weight(config, masks.shape[2]), 4),
+        "silhouette_weight": round(w_sil, 4), "fair_weight": round(fair, 4),
         **({"rerender_error": [round(mean_w(rerendered[k].error), 4) for k in ("input", "refined")],
             "rerender_error_views": {k: [round(float(e), 5) for e in r.error] for k, r in rerendered.items()}}
            if rerendered else {}),
