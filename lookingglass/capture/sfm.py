@@ -192,7 +192,11 @@ def run_sfm(image_dirs: list[str | os.PathLike], out: str | os.PathLike, masks: 
         reporter.info("features: already extracted (database.db), skipped")
     if not _stamp_ok(out / ".matches.json", feature_stamp):
         with reporter.stage("matching", f"exhaustive matching of {len(names)} photos"):
-            pycolmap.match_exhaustive(str(db), device=pycolmap.Device.cpu)
+            # RANSAC's verification draws from an unseeded generator unless told: a seed makes the two-view
+            # geometries, and with them the poses, the same run after run
+            verification = pycolmap.TwoViewGeometryOptions()
+            verification.ransac.random_seed = config.seed
+            pycolmap.match_exhaustive(str(db), verification_options=verification, device=pycolmap.Device.cpu)
         write_json(out / ".matches.json", feature_stamp)
     else:
         reporter.info("matching: already done (database.db), skipped")
