@@ -2,8 +2,8 @@
 # Rebuild lookingglass/weights/normals_05views.safetensors (+ .json): the 5-view normal net, fine-tuned from the
 # 10-view net's first run.
 #
-# Time on a 2-core CPU: ~2.7 h from scratch: the 10-view net's first run (~25 min of data + ~40 min, via
-# recipes/normals_10views.sh; skipped if already made), then ~15 + ~22 min of 5-view data and ~20 + ~13 + ~21 min
+# Time on a 2-core CPU: ~3 h from scratch: the 10-view net's first run (~25 min of data + ~40 min, via
+# recipes/normals_10views.sh; skipped if already made), then ~15 + ~22 min of 5-view data and ~20 + ~13 + ~21 + ~19 min
 # of training.
 # Provenance: lookingglass/weights/normals_05views.json (2026-11-23). Usage: bash recipes/normals_05views.sh
 # (settings: recipes/_lib.sh). Steps are skipped when their weights exist and resume when interrupted.
@@ -42,4 +42,11 @@ GENERATE=generate_users step normals5angle "$DATA/users5" 5 1000 \
     --init "$RUNS/normals5users/weights.safetensors" --epochs 3 --lr 1e-4 --lr-halve-epochs 2 --photo-noise 0.5 \
     --max-scenes 1000 --loss angle --out "$RUNS/normals5angle"
 
-install_weights normals5angle normals_05views
+# 3 more angle-loss epochs from the run above (as step 5 of normals_10views.sh): 5e-5 for two epochs, then 2.5e-5,
+# another shuffling seed; two DDP processes (~6 min an epoch).
+GENERATE=generate_users step normals5angle2 "$DATA/users5" 5 1000 \
+    "${DDP[@]}" train-normals --data "$DATA/users5" --views 5 --preset cpu --variant wr+cv --seed 1 \
+    --init "$RUNS/normals5angle/weights.safetensors" --epochs 3 --lr 5e-5 --lr-halve-epochs 2 --photo-noise 0.5 \
+    --max-scenes 1000 --loss angle --out "$RUNS/normals5angle2"
+
+install_weights normals5angle2 normals_05views
