@@ -461,7 +461,8 @@ def eval_normals(
     latent_iterations: int = typer.Option(10, help="Latent-optimization steps per phase for wr+cv+op (0: skip)."),
     max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
     ior: str = typer.Option("scene", "--ior", help=EVAL_IOR_HELP),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the settings and rows as JSON."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the settings, the rows and each "
+                                             "scene's own rows (with its IoR) as JSON."),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
     workers: int = typer.Option(0, help=WORKERS_HELP),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
@@ -483,13 +484,13 @@ def eval_normals(
         paths[name] = Path(path)
     latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
     dataset = TransparentSceneDataset(data, "test", views=views)
-    results = evaluate_normals(dataset, paths, latent, max_scenes, Reporter(quiet=quiet), device, workers, ior=held)
+    table = evaluate_normals(dataset, paths, latent, max_scenes, Reporter(quiet=quiet), device, workers, ior=held)
     if json_out is not None:
         settings = {"data": str(Path(data).resolve()), "weights": {k: str(p.resolve()) for k, p in paths.items()},
                     "views": views, "latent_iterations": latent_iterations, "max_scenes": max_scenes,
                     "ior": held if held is not None else "scene"}
-        write_json(json_out, {"settings": settings, "rows": results})
-    print(markdown_table(results))
+        write_json(json_out, {"settings": settings, "rows": table.rows, "scenes": table.scenes})
+    print(markdown_table(table.rows))
 
 
 def _held_ior(text: str) -> float | None:

@@ -83,8 +83,17 @@ def test_eval_normals_prints_table_1_and_workers_match_one_process(two_scene_spl
     tables = {}
     for workers in (1, 2):
         proc = run("eval-normals", "--data", two_scene_split, "--weights", f"wr+cv={shipped_weights(10)[0]}",
-                   "--latent-iterations", 2, "--workers", workers, "--quiet")
+                   "--latent-iterations", 2, "--workers", workers, "--quiet",
+                   "--json", two_scene_split / f"normals{workers}.json")
         tables[workers] = table_rows(proc.stdout)
+    # the JSON: the printed rows, and each scene's own (by index, with its IoR); the pooled median
+    # lies between the two scenes' medians
+    saved = json.loads((two_scene_split / "normals2.json").read_text())
+    assert [s["index"] for s in saved["scenes"]] == [0, 1] and all(s["ior"] == 1.4723 for s in saved["scenes"])
+    for row, numbers in saved["rows"].items():
+        assert round(numbers["n1_median"], 2) == tables[2][row][0]
+        per_scene = [s["rows"][row]["n1_median"] for s in saved["scenes"]]
+        assert min(per_scene) <= numbers["n1_median"] <= max(per_scene), (row, per_scene)
     assert list(tables[2]) == list(tables[1]) == ["vh", "wr+cv", "wr+cv+op", "gt"]
     for row, numbers in tables[1].items():
         assert tables[2][row] == pytest.approx(numbers, abs=0.011), row

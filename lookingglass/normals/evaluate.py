@@ -68,26 +68,39 @@ class NormalErrors:
                 "n2_mean": float(n2.mean()), "render_error": self.sq_err / max(self.count, 1)}
 
 
+@dataclass
+class NormalTable:
+    """Table 1: rows pooled over every pixel of every scene ({row: NormalErrors.summary() and
+    seconds_per_scene}, in the table's order), and each scene's own ({"index", "ior": the scene's
+    true IoR, "rows": {row: summary}}, by index) for plots against a scene property."""
+
+    rows: dict[str, dict]
+    scenes: list[dict]
+
+
 def evaluate_normals(dataset, weights: dict[str, Path], latent: LatentOptConfig | None = None,
                      max_scenes: int = 0, reporter: Reporter | None = None, device: str = "cpu",
-                     workers: int = 1, ior: float | None = None) -> dict[str, dict]:
-    """Rows of Table 1. weights maps a variant name (basic, wr, wr+cv) to its weights file;
-    `wr+cv+op` is added when wr+cv is given and `latent` is not None. Runs on `device`.
-    workers: scenes evaluated at once, each in its own process with one thread (0: one per core;
-    CPU only); the pooled statistics do not depend on it beyond float rounding. ior: the IoR the
-    inputs, the rendering layer and the latent optimization assume for every scene (the paper's
-    "var. IoR" rows hold 1.4723 while the photos have others); None: each scene's own. The ground
-    truth is the scene's own either way."""
+                     workers: int = 1, ior: float | None = None) -> NormalTable:
+    """Table 1. weights maps a variant name (basic, wr, wr+cv) to its weights file; `wr+cv+op` is
+    added when wr+cv is given and `latent` is not None. Runs on `device`. workers: scenes evaluated
+    at once, each in its own process with one thread (0: one per core; CPU only); the pooled
+    statistics do not depend on it beyond float rounding. ior: the IoR the inputs, the rendering
+    layer and the latent optimization assume for every scene (the paper's "var. IoR" rows hold
+    1.4723 while the photos have others); None: each scene's own. The ground truth is the scene's
+    own either way."""
     reporter = reporter or Reporter(quiet=True)
     n = len(dataset) if not max_scenes else min(max_scenes, len(dataset))
     per_scene = map_scenes(_NormalEvaluation, (dataset, dict(weights), latent, ior), list(range(n)), workers, device)
     rows: dict[str, NormalErrors] = {}
-    for scene_rows in reporter.track(per_scene, total=n, description="test scenes"):
+    scenes = []
+    for index, scene_rows in reporter.track(per_scene, total=n, description="test scenes"):
         for name, errors in scene_rows.items():
             rows.setdefault(name, NormalErrors()).merge(errors)
+        scenes.append({"index": index, "ior": float(dataset.meta(index)["ior"]),
+                       "rows": {name: errors.summary() for name, errors in scene_rows.items()}})
     order = ["vh", *weights, "wr+cv+op", "gt"]  # the table's row order, whatever order the scenes finished in
-    return {name: {**rows[name].summary(), "seconds_per_scene": rows[name].seconds / max(n, 1)}
-            for name in order if name in rows}
+    return NormalTable({name: {**rows[name].summary(), "seconds_per_scene": rows[name].seconds / max(n, 1)}
+                        for name in order if name in rows}, sorted(scenes, key=lambda s: s["index"]))
 
 
 class _NormalEvaluation:
@@ -100,9 +113,9 @@ class _NormalEvaluation:
         for w in self.nets.values():
             w.net.to(device)
 
-    def scene(self, i: int) -> dict[str, NormalErrors]:
-        """Every row's errors on test scene i, on `reconstruct`'s path: the inputs are made from
-        the scene as a capture and its hull (`NormalInputs.from_capture`)."""
+    def scene(self, i: int) -> tuple[int, dict[str, NormalErrors]]:
+        """i and every row's errors on test scene i, on `reconstruct`'s path: the inputs are made
+        from the scene as a capture and its hull (`NormalInputs.from_capture`)."""
         capture, hull = self.dataset.capture(i, self.ior), self.dataset.hull(i)
         truth = normal_targets(self.dataset[i], self.device)
         made: dict[tuple, NormalInputs] = {}  # nets of one size and map height share their inputs
@@ -131,7 +144,7 @@ class _NormalEvaluation:
         # pixels whose light takes more interfaces or none after the first (angle errors 0 here).
         rows["gt"] = NormalErrors()
         rows["gt"].add(render_normals(x, truth["n1"].permute(0, 2, 3, 1), truth["n2"].permute(0, 2, 3, 1)), truth)
-        return rows
+        return i, rows
 
 
 def markdown_table(results: dict[str, dict]) -> str:
