@@ -5,7 +5,9 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))  # tests/mitsuba_ref.py and friends
-os.environ.setdefault("OMP_NUM_THREADS", "2")
+# one torch thread a pytest-xdist worker (`pytest -n 2`: a worker a core), else both cores; set
+# before any test module imports torch, and inherited by the CLI subprocesses the tests start
+os.environ.setdefault("OMP_NUM_THREADS", "1" if os.environ.get("PYTEST_XDIST_WORKER") else "2")
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"  # ../shared beside the repository
 

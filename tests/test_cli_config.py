@@ -1,6 +1,7 @@
 """Config options generated from the dataclasses (lookingglass/cliconfig.py): --help shows them
 with the preset's defaults, given values land over the chosen preset, bad ones are one clear line."""
 
+import functools
 import os
 import subprocess
 import sys
@@ -19,12 +20,19 @@ CLI = [sys.executable, "-m", "lookingglass.cli"]
 WIDE = {**os.environ, "COLUMNS": "250", "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
 
 
-def help_line(command: str, flag: str) -> str:
-    """The --help row of `flag` in `command`'s help (wide enough that it fits one line)."""
+@functools.lru_cache(maxsize=None)
+def help_text(command: str) -> str:
+    """`command --help`, wide enough that each option fits one line (one process a command)."""
     proc = subprocess.run([*CLI, command, "--help"], capture_output=True, text=True, timeout=120, env=WIDE)
     assert proc.returncode == 0, proc.stderr
-    rows = [line for line in proc.stdout.splitlines() if f" {flag} " in line or f" {flag}," in line]
-    assert len(rows) == 1, (flag, proc.stdout)
+    return proc.stdout
+
+
+def help_line(command: str, flag: str) -> str:
+    """The --help row of `flag` in `command`'s help."""
+    text = help_text(command)
+    rows = [line for line in text.splitlines() if f" {flag} " in line or f" {flag}," in line]
+    assert len(rows) == 1, (flag, text)
     return rows[0]
 
 
