@@ -213,7 +213,8 @@ def test_photos_are_checked_and_the_photometric_term_descends(scene, capture):
 def test_coarse_masks_pull_less():
     """The silhouette weight applies whole from silhouette_width (480) up and falls as the width
     squared below it (a 128-pixel mask's boundary is 3.75x coarser: (128/480)^2 of the weight); the
-    fairing, which those masks then hold back less, as the width."""
+    fairing, which those masks then hold back less, as the width. Fewer views than silhouette_views
+    pull harder."""
     from lookingglass.refine import fair_weight, silhouette_weight
 
     config = RefineConfig(silhouette_weight=2.0)
@@ -221,5 +222,9 @@ def test_coarse_masks_pull_less():
     assert silhouette_weight(config, 128) == pytest.approx(2.0 * (128 / 480) ** 2, rel=1e-12)
     assert silhouette_weight(config, 240) == pytest.approx(0.5, rel=1e-12)
     assert silhouette_weight(dataclasses.replace(config, silhouette_width=0), 64) == 2.0
+    # fewer than silhouette_views (10) views: the weight times 10 / V; more: unchanged
+    assert silhouette_weight(config, 480, 5) == pytest.approx(4.0, rel=1e-12)
+    assert silhouette_weight(config, 480, 10) == silhouette_weight(config, 480, 20) == 2.0
+    assert silhouette_weight(dataclasses.replace(config, silhouette_views=0), 480, 5) == 2.0
     assert fair_weight(RefineConfig(), 480) == fair_weight(RefineConfig(), 1000) == 15.0
     assert fair_weight(RefineConfig(), 128) == pytest.approx(4.0, rel=1e-12)  # the weight measured at 128x96
