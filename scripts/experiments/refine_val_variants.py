@@ -1,0 +1,80 @@
+"""The refine stage's settings compared on a validation set, from the PNet surfaces a `validate` run left
+(OUT/<name>/surface.ply): per scene and in the mean, CD / CDN-mean / Metro against the ground truth, the worst
+view's silhouette IoU, whether `reconstruct`'s keep check keeps the refined mesh, and the stage's seconds.
+
+Usage, after `lookingglass validate --data DATA --out RUNS`:
+    .venv/bin/python scripts/experiments/refine_val_variants.py DATA RUNS \\
+        "default" "iterations=12" "iterations=24,silhouette_views=0" [--shapes duck,key]
+Each variant is "default" or comma-separated RefineConfig fields (key=value) over the defaults.
+"""
+import argparse
+import dataclasses
+import time
+import warnings
+
+import numpy as np
+import torch
+
+from lookingglass.capture.scene import load_capture
+from lookingglass.config import PipelineConfig
+from lookingglass.hull import carve_visual_hull
+from lookingglass.metrics import load_mesh, shape_metrics
+from lookingglass.refine import RefineConfig, refine_surface
+
+
+def variant(text: str) -> RefineConfig:
+    if text == "default":
+        return RefineConfig()
+    types = {f.name: f.type for f in dataclasses.fields(RefineConfig)}
+    values = {}
+    for item in text.split(","):
+        key, value = item.split("=")
+        values[key] = {"int": int, "float": float}.get(types[key], float)(value)
+    return RefineConfig(**values)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("data")
+    parser.add_argument("runs")
+    parser.add_argument("variants", nargs="+")
+    parser.add_argument("--shapes", default="")
+    args = parser.parse_args()
+    warnings.simplefilter("ignore")
+    import json
+    from pathlib import Path
+    data, runs = Path(args.data), Path(args.runs)
+    names = args.shapes.split(",") if args.shapes else list(json.loads((data / "index.json").read_text())["shapes"])
+    hull_config = PipelineConfig().hull
+    rows = {v: [] for v in args.variants}
+    for name in names:
+        capture = load_capture(data / name / "scene")
+        gt = load_mesh(data / name / "ground_truth.ply")
+        hull = carve_visual_hull(capture.masks, capture.cameras.to(dtype=torch.float32), hull_config)
+        surface = load_mesh(runs / name / "surface.ply")
+        h, s = shape_metrics(hull.mesh, gt), shape_metrics(surface, gt)
+        print(f"{name:15s} hull    CD {h['cd']:6.2f} CDN {h['cdn_mean']:6.2f} metro {h['metro']:6.2f} | "
+              f"surface CD {s['cd']:6.2f} CDN {s['cdn_mean']:6.2f}", flush=True)
+        for v in args.variants:
+            t = time.perf_counter()
+            result = refine_surface(surface, hull, capture.masks, capture.cameras, variant(v), capture=capture)
+            seconds = time.perf_counter() - t
+            m = shape_metrics(result.refined, gt)
+            kept = result.report["kept"] == "refined"
+            iou = min(result.report["silhouette_iou_after"])
+            rr = result.report.get("rerender_error", [np.nan, np.nan])[1]
+            rows[v].append((m["cd"] / h["cd"], m["cdn_mean"] / h["cdn_mean"], m["cd"], m["cdn_mean"], m["metro"],
+                            iou, kept, seconds, rr))
+            print(f"{name:15s} {v:40s} CD {m['cd']:6.2f} CDN {m['cdn_mean']:6.2f} metro {m['metro']:6.2f} "
+                  f"IoU {iou:.4f} rr {rr:.4f} {'kept' if kept else 'REJECTED ' + result.report.get('kept_why', '')} "
+                  f"{seconds:.1f}s", flush=True)
+    print("\nmeans: CD/hull CDN/hull CD CDN Metro | worst IoU | kept | seconds | rerender")
+    for v, r in rows.items():
+        a = np.array([x[:6] + (float(x[6]), x[7], x[8]) for x in r])
+        print(f"{v:40s} {a[:, 0].mean():.3f} {a[:, 1].mean():.3f} {a[:, 2].mean():6.2f} {a[:, 3].mean():6.2f} "
+              f"{a[:, 4].mean():6.2f} | {a[:, 5].min():.4f} | {int(a[:, 6].sum())}/{len(a)} | {a[:, 7].mean():.1f} | "
+              f"{a[:, 8].mean():.4f}")
+
+
+if __name__ == "__main__":
+    main()
