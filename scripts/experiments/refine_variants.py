@@ -2,8 +2,10 @@
 128x96): per scene, the PNet surface and the refined mesh of each variant, CD / CDN-mean against the ground truth
 and the worst view's silhouette IoU; "kept" says whether `reconstruct`'s keep check would keep it.
 
-Usage: .venv/bin/python scripts/experiments/refine_variants.py DATA 1,2,3,4,5,6
-(DATA/test a split made by `lookingglass generate --split test`; the shipped 10-view weights.)
+Usage: .venv/bin/python scripts/experiments/refine_variants.py DATA 1,2,3,4,5,6 [VARIANT ...]
+(DATA/test a split made by `lookingglass generate --split test`; the shipped 10-view weights.) A VARIANT is
+"default" or comma-separated RefineConfig fields over the defaults ("iterations=12,fair_weight=25"); without any,
+the silhouette weights of the 2026-11-25 measurement.
 """
 import sys
 import warnings
@@ -22,6 +24,10 @@ VARIANTS = {"weight 1": dict(silhouette_weight=1.0, silhouette_width=0),
             "weight 0.07": dict(silhouette_weight=0.07, silhouette_width=0),
             "weight 0": dict(silhouette_weight=0.0), "default": {}}
 
+if len(sys.argv) > 3:
+    VARIANTS = {v: {} if v == "default" else {k: (int if k in ("iterations", "silhouette_views", "silhouette_width")
+                                                  else float)(x) for k, x in (kv.split("=") for kv in v.split(","))}
+                for v in sys.argv[3:]}
 warnings.simplefilter("ignore")
 torch.set_num_threads(1)
 ds = TransparentSceneDataset(sys.argv[1], "test", views=10)
