@@ -255,7 +255,7 @@ def test_normal_evaluation_holds_the_ior(varied):
     ds = TransparentSceneDataset(varied, "train")
     own = _NormalEvaluation(ds, {}, None).scene(0)
     held = _NormalEvaluation(ds, {}, None, ior=1.4723).scene(0)
-    own, held = ({k: v.summary() for k, v in rows.items()} for rows in (own, held))
+    own, held = ({k: v.summary() for k, v in rows.items()} for _, rows in (own, held))
     assert own["gt"]["n1_mean"] == held["gt"]["n1_mean"] < 1e-3 and own["gt"]["n2_mean"] < 1e-3  # the same truth
     assert held["gt"]["render_error"] > own["gt"]["render_error"]  # 0.1094 against 0.1079 here
     # the hull's first hits do not see the IoR; its second hits, traced at 1.4723, are further from

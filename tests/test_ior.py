@@ -17,6 +17,7 @@ from lookingglass.data.rigs import paper_rig
 from lookingglass.data.synthetic import render_capture
 from lookingglass.errors import ConfigError, LookingGlassError
 from lookingglass.hull import HullConfig
+from lookingglass.normals.evaluate import NormalTable
 from lookingglass.render.tracer import RenderConfig
 from lookingglass.weights import shipped_weights
 
@@ -97,7 +98,7 @@ def test_eval_commands_hold_the_ior(tmp_path, monkeypatch):
     seen = {}
     monkeypatch.setattr("lookingglass.data.torch_dataset.TransparentSceneDataset", lambda *a, **k: "dataset")
     monkeypatch.setattr("lookingglass.normals.evaluate.evaluate_normals",
-                        lambda *a, **k: seen.setdefault("normals", []).append(k["ior"]) or {})
+                        lambda *a, **k: seen.setdefault("normals", []).append(k["ior"]) or NormalTable({}, []))
     monkeypatch.setattr("lookingglass.points.evaluate.evaluate_shapes",
                         lambda *a, **k: seen.setdefault("shapes", []).append(k["ior"]) or {"rows": {}, "scenes": []})
     runner = CliRunner()
