@@ -9,8 +9,10 @@ Each variant is "default" or comma-separated RefineConfig fields (key=value) ove
 """
 import argparse
 import dataclasses
+import json
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -23,6 +25,7 @@ from lookingglass.refine import RefineConfig, refine_surface
 
 
 def variant(text: str) -> RefineConfig:
+    """RefineConfig from "default" or "key=value,key=value" (fields over the defaults)."""
     if text == "default":
         return RefineConfig()
     types = {f.name: f.type for f in dataclasses.fields(RefineConfig)}
@@ -41,8 +44,6 @@ def main() -> None:
     parser.add_argument("--shapes", default="")
     args = parser.parse_args()
     warnings.simplefilter("ignore")
-    import json
-    from pathlib import Path
     data, runs = Path(args.data), Path(args.runs)
     names = args.shapes.split(",") if args.shapes else list(json.loads((data / "index.json").read_text())["shapes"])
     hull_config = PipelineConfig().hull

@@ -7,8 +7,10 @@ Usage: .venv/bin/python scripts/experiments/refine_variants.py DATA 1,2,3,4,5,6 
 "default" or comma-separated RefineConfig fields over the defaults ("iterations=12,fair_weight=25"); without any,
 the silhouette weights of the 2026-11-25 measurement.
 """
+import dataclasses
 import sys
 import warnings
+from pathlib import Path
 
 import torch
 
@@ -25,9 +27,10 @@ VARIANTS = {"weight 1": dict(silhouette_weight=1.0, silhouette_width=0),
             "weight 0": dict(silhouette_weight=0.0), "default": {}}
 
 if len(sys.argv) > 3:
-    VARIANTS = {v: {} if v == "default" else {k: (int if k in ("iterations", "silhouette_views", "silhouette_width")
-                                                  else float)(x) for k, x in (kv.split("=") for kv in v.split(","))}
-                for v in sys.argv[3:]}
+    sys.path.insert(0, str(Path(__file__).parent))
+    from refine_val_variants import variant
+
+    VARIANTS = {v: dataclasses.asdict(variant(v)) for v in sys.argv[3:]}
 warnings.simplefilter("ignore")
 torch.set_num_threads(1)
 ds = TransparentSceneDataset(sys.argv[1], "test", views=10)
