@@ -113,6 +113,9 @@ class RefineConfig:
     fair_weight: float = setting(15.0, "Weight of the Laplacian of the positions (fairing; shrinks; at edge 0.015 and "
                                        "masks silhouette_width wide, scaled by width / silhouette_width below).",
                                  range=(0, None))
+    fair_thickness: float = setting(0.0, "Local thickness (shape diameter, hull-normalized frame) below which the fairing "
+                                         "weakens as (thickness / this)^2: a thin part shrinks under it first (0: "
+                                         "uniform fairing).", range=(0, None))
     anchor_weight: float = setting(0.05, "Weight of the displacement from the start (keeps each pull local).",
                                    range=(0, None))
     damping: float = setting(0.05, "Weight of the step length (proximal term).", range=(1e-6, None))
@@ -182,6 +185,19 @@ def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(F, 3) area-weighted (unnormalized, length = 2 x area) face normals."""
     tri = vertices[faces]
     return np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+
+
+def local_thickness(vertices: np.ndarray, faces: np.ndarray, smoothing: int = 3) -> np.ndarray:
+    """(N,) each vertex's shape diameter: the distance along its inward normal to the far side of the
+    closed mesh (10 where the ray escapes), averaged over the neighbourhood (`smoothing` rounds, in
+    the log) so that one stray ray does not set a vertex's value."""
+    caster = RayCaster(trimesh.Trimesh(vertices, faces, process=False))
+    t = caster.intersect(vertices, -caster.vertex_normals, offset=True).t
+    t = np.log(np.clip(t, 1e-4, 10.0))
+    average = sp.identity(len(vertices), format="csr") - uniform_laplacian(faces, len(vertices))
+    for _ in range(smoothing):
+        t = average @ t
+    return np.exp(t)
 
 
 def _unfolded(start: np.ndarray, previous: np.ndarray, proposed: np.ndarray, faces: np.ndarray,
@@ -577,7 +593,6 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     fields = torch.as_tensor(silhouette_fields(masks))
     lap = uniform_laplacian(faces, len(x0))
     lap_t = lap.T.tocsr()
-    ltl_diag = np.asarray(lap.multiply(lap).sum(axis=0)).ravel()  # diag of L^T L
     before = _terms(x0, faces, fields, cams, lap, weights, config)
     # The Laplacian terms sum |L x|^2 ~ edge^4 |curvature|^2 over ~1/edge^2 vertices, the rim
     # constraints ~1/edge per unit of contour: weights scaled by (REFERENCE_EDGE / edge)^3 act the
@@ -585,7 +600,11 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     scale = (REFERENCE_EDGE / config.edge_length) ** 3
     fair, w_sil = fair_weight(config, masks.shape[2]), silhouette_weight(config, masks.shape[2], V)
     w_smooth, w_fair = config.smooth_weight * scale, fair * scale
-    c_smooth = w_smooth + w_fair
+    # per-vertex fairing: a thin part has the largest curvature, and fairing shrinks it first
+    fair_share = np.ones(len(x0))
+    if config.fair_thickness > 0:
+        fair_share = np.minimum(1.0, (local_thickness(x0, faces) / config.fair_thickness) ** 2)
+    lap_sq_t = lap.multiply(lap).T.tocsr()
     c_diag = config.damping + config.anchor_weight
     x = x0.copy()
     history = []
@@ -594,14 +613,15 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         """The linear system of one solve, given the constraints' blocks M (N, 3, 3): the operator
         and its diagonal (the preconditioner)."""
         def apply(d: np.ndarray) -> np.ndarray:
-            return np.einsum("nij,nj->ni", M, d) + c_smooth * (lap_t @ (lap @ d)) + c_diag * d
-        return apply, np.einsum("nii->ni", M) + c_smooth * ltl_diag[:, None] + c_diag
+            return np.einsum("nij,nj->ni", M, d) + lap_t @ (c_lap[:, None] * (lap @ d)) + c_diag * d
+        return apply, np.einsum("nii->ni", M) + (lap_sq_t @ c_lap)[:, None] + c_diag  # diag of L^T C L
 
+    c_lap = w_smooth + w_fair * fair_share  # weight of each vertex's Laplacian row
     for _ in range(config.iterations):
         s, g = field_values(fields, cams, x)
         cons = _constraints(x, faces, s, g, cams, weights, config, w_sil)
         history.append({"rim": int(cons.rim.sum()), "outside": int(cons.outside.sum())})
-        rhs = cons.b - lap_t @ (lap @ (w_smooth * (x - x0) + w_fair * x)) \
+        rhs = cons.b - lap_t @ (w_smooth * (lap @ (x - x0)) + (w_fair * fair_share)[:, None] * (lap @ x)) \
             - config.anchor_weight * (x - x0)
         apply, diag = system(cons.M)
         x = _unfolded(x0, x, x + _pcg(apply, rhs, diag, config.cg_iterations), faces)

@@ -23,7 +23,7 @@ from lookingglass.normals.inputs import NormalInputs
 from lookingglass.normals.predict import NormalMaps
 from lookingglass.physics.constants import IOR_GLASS
 from lookingglass.physics.environment import EnvironmentMap
-from lookingglass.refine import RefineConfig, refine_surface, silhouette_iou, uniform_laplacian
+from lookingglass.refine import RefineConfig, local_thickness, refine_surface, silhouette_iou, uniform_laplacian
 from lookingglass.render.raycast import object_masks
 from lookingglass.render.tracer import RenderConfig, render_views, trace_two_bounce
 
@@ -57,6 +57,45 @@ def test_uniform_laplacian_rows_sum_to_zero_and_vanish_on_constants():
     lap = uniform_laplacian(np.asarray(box.faces), len(box.vertices))
     np.testing.assert_allclose(lap @ np.ones(len(box.vertices)), 0, atol=1e-12)
     np.testing.assert_allclose(lap.diagonal(), 1)
+
+
+def test_local_thickness_is_the_diameter_of_a_sphere_and_a_plate():
+    """Along the inward normal of a sphere of radius r the far side is 2r away (the chord through the
+    centre; the faces lie at most the sagitta inside the sphere); through a plate, its thickness."""
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    t = local_thickness(np.asarray(sphere.vertices), np.asarray(sphere.faces), smoothing=0)
+    np.testing.assert_allclose(t, 1.0, rtol=2e-3)
+    plate = remesh_box((1.0, 1.0, 0.1))
+    v = np.asarray(plate.vertices)
+    middle = (np.abs(v[:, :2]).max(axis=1) < 0.3)  # big faces, away from the rims
+    t = local_thickness(v, np.asarray(plate.faces), smoothing=0)
+    np.testing.assert_allclose(t[middle], 0.1, rtol=0.02)
+
+
+def remesh_box(extents) -> trimesh.Trimesh:
+    """A box with its faces split into small triangles (vertices inside the big faces)."""
+    box = trimesh.creation.box(extents)
+    for _ in range(5):
+        box = box.subdivide()
+    return box
+
+
+def test_fairing_weakened_on_thin_parts_keeps_a_rod_on_its_masks():
+    """Fairing (|L x|^2) pulls hardest where the curvature is largest, ~1/r^3 on a rod of radius r;
+    weakened there by (thickness / fair_thickness)^2, a thin rod stays on its masks better."""
+    rod = trimesh.creation.capsule(height=1.4, radius=0.07, count=[32, 32])
+    rod.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
+    cameras = paper_rig(10, rng=3, width=320, height=240)
+    masks = object_masks(rod, cameras, samples_per_axis=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        hull = carve_visual_hull(masks, cameras, HullConfig(resolution=64, num_threads=1))
+    strong = dataclasses.replace(CONFIG, fair_weight=60.0)
+    uniform = silhouette_iou(refine_surface(rod, hull, masks, cameras, strong).refined, cameras, masks)
+    thin = dataclasses.replace(strong, fair_thickness=0.4)
+    weakened = silhouette_iou(refine_surface(rod, hull, masks, cameras, thin).refined, cameras, masks)
+    # measured: worst view 0.972 -> 0.980, mean 0.983 -> 0.987
+    assert weakened.min() >= uniform.min() + 0.004 and weakened.mean() > uniform.mean(), (uniform, weakened)
 
 
 def test_shrunken_lumpy_mesh_is_pulled_onto_the_masks(scene):
