@@ -70,4 +70,13 @@ step points5n "$D5" 5 1599 \
     --init "$RUNS/points5m/weights.safetensors" --epochs 4 --lr 1e-4 --lr-halve-epochs 2 --max-scenes 1599 \
     --out "$RUNS/points5n"
 
-install_weights points5n points_05views
+# 6. 4 more on the 1000 5-view scenes like users' captures (issue 27; as step 8 of points_10views.sh), on the
+#    features of the 5-view normal net shipped since 2026-11-25 (normals_05views.sh's last run), two DDP
+#    processes (~22 min of data if normals_05views.sh has not made it, ~10 min of features, ~5 min of training).
+STOP_AFTER=normals5angle2 bash recipes/normals_05views.sh
+GENERATE=generate_users step points5users "$DATA/users5" 5 1000 \
+    "${DDP[@]}" train-points --data "$DATA/users5" --normals "$RUNS/normals5angle2/weights.safetensors" \
+    --preset cpu --epochs 4 --lr 1e-4 --lr-halve-epochs 2 --init "$RUNS/points5n/weights.safetensors" \
+    --max-scenes 1000 --out "$RUNS/points5users"
+
+install_weights points5users points_05views
