@@ -74,9 +74,6 @@ step points5n "$D5" 5 1599 \
 #    features of the 5-view normal net shipped since 2026-11-25 (normals_05views.sh's last run), two DDP
 #    processes (~22 min of data if normals_05views.sh has not made it, ~10 min of features, ~5 min of training).
 STOP_AFTER=normals5angle2 bash recipes/normals_05views.sh
-GENERATE=generate_users step points5users "$DATA/users5" 5 1000 \
-    "${DDP[@]}" train-points --data "$DATA/users5" --normals "$RUNS/normals5angle2/weights.safetensors" \
-    --preset cpu --epochs 4 --lr 1e-4 --lr-halve-epochs 2 --init "$RUNS/points5n/weights.safetensors" \
-    --max-scenes 1000 --out "$RUNS/points5users"
+points_on_users points5users 5 "$RUNS/normals5angle2/weights.safetensors" "$RUNS/points5n/weights.safetensors"
 
 install_weights points5users points_05views

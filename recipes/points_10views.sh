@@ -85,9 +85,6 @@ step points10p "$D10" 10 3000 \
 #    (~26 min of data if normals_10views.sh has not made it, ~16 min of features, 4 epochs of 500 steps a
 #    process: ~6 min).
 STOP_AFTER=normals10angle3 bash recipes/normals_10views.sh
-GENERATE=generate_users step points10users "$DATA/users10" 10 1000 \
-    "${DDP[@]}" train-points --data "$DATA/users10" --normals "$RUNS/normals10angle3/weights.safetensors" \
-    --preset cpu --epochs 4 --lr 1e-4 --lr-halve-epochs 2 --init "$RUNS/points10p/weights.safetensors" \
-    --max-scenes 1000 --out "$RUNS/points10users"
+points_on_users points10users 10 "$RUNS/normals10angle3/weights.safetensors" "$RUNS/points10p/weights.safetensors"
 
 install_weights points10users points_10views
