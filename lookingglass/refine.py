@@ -115,7 +115,8 @@ class RefineConfig:
                                  range=(0, None))
     fair_thickness: float = setting(0.0, "Local thickness (shape diameter, hull-normalized frame) below which the fairing "
                                          "weakens as (thickness / this)^2: a thin part shrinks under it first (0: "
-                                         "uniform fairing).", range=(0, None))
+                                         "uniform fairing; 0.2 kept the key on its masks but left lumps on "
+                                         "thin procedural parts: docs/history.md).", range=(0, None))
     anchor_weight: float = setting(0.05, "Weight of the displacement from the start (keeps each pull local).",
                                    range=(0, None))
     damping: float = setting(0.05, "Weight of the step length (proximal term).", range=(1e-6, None))
