@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Rebuild lookingglass/weights/points_05views.safetensors (+ .json): the 5-view point net, fine-tuned from the
-# 10-view one's second run in a chain of 5 runs, the last two on 1599 training scenes.
+# 10-view one's second run in a chain of 6 runs: 5 on up to 1599 procedural scenes, the last on users' captures.
 #
-# Time on a 2-core CPU: ~6 h from scratch: the 5-view normal net (~1.75 h, recipes/normals_05views.sh), the
+# Time on a 2-core CPU: ~7 h from scratch: the 5-view normal net (~3 h, recipes/normals_05views.sh), the
 # 10-view point net's first two runs (~1.8 h, recipes/points_10views.sh up to runs/points10ft), then ~2.3 h of
 # its own (~25 min more 5-view data, ~2 h of point-net runs). Parts already made are skipped.
 # Provenance: lookingglass/weights/points_05views.json (2026-11-24). Usage: bash recipes/points_05views.sh
