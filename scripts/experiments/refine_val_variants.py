@@ -8,7 +8,6 @@ Usage, after `lookingglass validate --data DATA --out RUNS`:
 Each variant is "default" or comma-separated RefineConfig fields (key=value) over the defaults.
 """
 import argparse
-import dataclasses
 import json
 import time
 import warnings
@@ -19,21 +18,18 @@ import torch
 
 from lookingglass.capture.scene import load_capture
 from lookingglass.config import PipelineConfig
+from lookingglass.configio import config_from_dict
 from lookingglass.hull import carve_visual_hull
 from lookingglass.metrics import load_mesh, shape_metrics
 from lookingglass.refine import RefineConfig, refine_surface
 
 
 def variant(text: str) -> RefineConfig:
-    """RefineConfig from "default" or "key=value,key=value" (fields over the defaults)."""
+    """RefineConfig from "default" or "key=value,key=value" (fields over the defaults; values as JSON)."""
     if text == "default":
         return RefineConfig()
-    types = {f.name: f.type for f in dataclasses.fields(RefineConfig)}
-    values = {}
-    for item in text.split(","):
-        key, value = item.split("=")
-        values[key] = {"int": int, "float": float}.get(types[key], float)(value)
-    return RefineConfig(**values)
+    values = {key: json.loads(value) for key, value in (item.split("=") for item in text.split(","))}
+    return config_from_dict(RefineConfig, values, f"variant {text!r}")
 
 
 def main() -> None:
@@ -64,15 +60,15 @@ def main() -> None:
             kept = result.report["kept"] == "refined"
             iou = min(result.report["silhouette_iou_after"])
             rr = result.report.get("rerender_error", [np.nan, np.nan])[1]
-            rows[v].append((m["cd"] / h["cd"], m["cdn_mean"] / h["cdn_mean"], m["cd"], m["cdn_mean"], m["metro"],
-                            iou, kept, seconds, rr))
+            rows[v].append((h["cd"], h["cdn_mean"], m["cd"], m["cdn_mean"], m["metro"], iou, kept, seconds, rr))
             print(f"{name:15s} {v:40s} CD {m['cd']:6.2f} CDN {m['cdn_mean']:6.2f} metro {m['metro']:6.2f} "
                   f"IoU {iou:.4f} rr {rr:.4f} {'kept' if kept else 'REJECTED ' + result.report.get('kept_why', '')} "
                   f"{seconds:.1f}s", flush=True)
+    # ratios of the means, as docs/results.md and issue 25's bars use them
     print("\nmeans: CD/hull CDN/hull CD CDN Metro | worst IoU | kept | seconds | rerender")
     for v, r in rows.items():
         a = np.array([x[:6] + (float(x[6]), x[7], x[8]) for x in r])
-        print(f"{v:40s} {a[:, 0].mean():.3f} {a[:, 1].mean():.3f} {a[:, 2].mean():6.2f} {a[:, 3].mean():6.2f} "
+        print(f"{v:40s} {a[:, 2].mean() / a[:, 0].mean():.3f} {a[:, 3].mean() / a[:, 1].mean():.3f} {a[:, 2].mean():6.2f} {a[:, 3].mean():6.2f} "
               f"{a[:, 4].mean():6.2f} | {a[:, 5].min():.4f} | {int(a[:, 6].sum())}/{len(a)} | {a[:, 7].mean():.1f} | "
               f"{a[:, 8].mean():.4f}")
 
