@@ -548,14 +548,17 @@ def _terms(vertices: np.ndarray, faces: np.ndarray, fields: torch.Tensor, cams: 
            weights: np.ndarray, config: RefineConfig) -> dict:
     """The optimized measures at `vertices` (normalized frame): outside (mean over the weighted
     views and the vertices of relu(-s)^2, px^2), silhouette (mean s^2 over the rim vertices, px^2,
-    within the band), smooth (mean |L x|^2 / edge^2)."""
+    within the band), its bias (mean s over them, px; + the mesh inside its masks), smooth (mean
+    |L x|^2 / edge^2)."""
     s, g = field_values(fields, cams, vertices)
     rim = _rim(vertices, faces, s, cams, weights[:, None] > 0, config)
     wv = np.broadcast_to(weights[:, None], s.shape)
     outside = float((wv * np.maximum(-s, 0) ** 2).sum() / max(wv.sum(), 1e-12))
     sil = float((wv[rim] * s[rim] ** 2).sum() / max(wv[rim].sum(), 1e-12))
+    bias = float((wv[rim] * s[rim]).sum() / max(wv[rim].sum(), 1e-12))
     smooth = float((np.asarray(lap @ vertices) ** 2).sum(axis=1).mean() / config.edge_length ** 2)
-    return {"silhouette_px2": sil, "outside_px2": outside, "smooth": smooth, "rim_vertices": int(rim.sum())}
+    return {"silhouette_px2": sil, "silhouette_bias_px": bias, "outside_px2": outside, "smooth": smooth,
+            "rim_vertices": int(rim.sum())}
 
 
 def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cameras: Cameras,

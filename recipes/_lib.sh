@@ -53,14 +53,14 @@ step() {
     fi
 }
 
-# points_on_users NAME VIEWS NORMALS INIT: the point net's run on users' captures (issue 27): 4 epochs (1e-4, halved
-# after 2) on the 1000 VIEWS-view scenes of generate_users in DATA/usersVIEWS, on the features of the normal net
-# NORMALS, from the point net INIT; two DDP processes; --out RUNS/NAME.
+# points_on_users NAME VIEWS NORMALS INIT [SCENES]: the point net's run on users' captures (issue 27): 4 epochs (1e-4,
+# halved after 2) on the first SCENES (1000) VIEWS-view scenes of generate_users in DATA/usersVIEWS, on the features
+# of the normal net NORMALS, from the point net INIT; two DDP processes; --out RUNS/NAME.
 points_on_users() {
-    local name=$1 views=$2 normals=$3 init=$4
-    GENERATE=generate_users step "$name" "$DATA/users$views" "$views" 1000 \
+    local name=$1 views=$2 normals=$3 init=$4 scenes=${5:-1000}
+    GENERATE=generate_users step "$name" "$DATA/users$views" "$views" "$scenes" \
         "${DDP[@]}" train-points --data "$DATA/users$views" --normals "$normals" --preset cpu \
-        --epochs 4 --lr 1e-4 --lr-halve-epochs 2 --init "$init" --max-scenes 1000 --out "$RUNS/$name"
+        --epochs 4 --lr 1e-4 --lr-halve-epochs 2 --init "$init" --max-scenes "$scenes" --out "$RUNS/$name"
 }
 
 # reuse_features FROM TO: before run TO starts, hard-link run FROM's point-feature cache into it, as the
