@@ -153,6 +153,9 @@ def test_shipped_weights_for_other_view_counts():
         assert shipped_weights(5) == (path, 10) and shipped_weights(3) == (path, 10)
     for asked in (3, 7, 12):
         assert shipped_weights(asked)[1] in (5, 10, 20)
+    if (path.parent / "normals_20views.safetensors").exists():
+        assert [shipped_weights(n)[1] for n in (14, 15, 20, 25, 30)] == [10, 20, 20, 20, 20]  # 15: a tie, the larger
+        assert shipped_weights(25, "points")[0].name == "points_20views.safetensors"
     points, point_views = shipped_weights(10, "points")
     assert points is not None and points.name == "points_10views.safetensors" and point_views == 10
 
