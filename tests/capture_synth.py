@@ -253,3 +253,53 @@ def capture_shoot(root: Path, num_views: int = 16, ball_views: tuple[int, ...] =
     for i, img in zip(ball_idx, distort(balls, cams.select(ball_idx), k)):
         write_image(root / "ball" / f"ball_{i:02d}.exr", img)
     return dict(cams=cams, obj_idx=obj_idx, ball_idx=ball_idx, mesh=mesh, env=env, masks=masks)
+
+
+def capture_figures(truth: dict, work: Path, scene_size: tuple[int, int]) -> dict:
+    """Issue 26's figures for a `lookingglass capture` run in `work` on the shoot `truth` (`capture_shoot`'s), after the
+    similarity that maps the recovered camera centres onto the true ones: each view's rotation error (deg) and
+    centre error (fraction of the mean camera distance), the ball's centre error (fraction of its radius) and radius
+    error (relative), each ball view's outline residual (px), the map's log-luminance correlation with the truth,
+    the visual hull's CD in the true frame, that of the hull carved from the true cameras at the same settings
+    (`scene_size` masks), and both after fitting onto the object (ICP). Also the model, its views' indices and the
+    similarity (s, R, t)."""
+    import json
+
+    from lookingglass.capture.colmap import IMPORT_FILE, read_model
+    from lookingglass.capture.images import read_envmap
+    from lookingglass.data.envmaps import resize_envmap
+    from lookingglass.hull import carve_visual_hull
+    from lookingglass.metrics import shape_metrics
+    from lookingglass.physics.environment import rotate_envmap
+    from lookingglass.presets import preset
+    from lookingglass.render.raycast import object_masks
+
+    model = read_model(work / "sfm")
+    index = [int(v.stem.split("_")[1]) for v in model.views]
+    cams = truth["cams"].select(index)
+    est_o, true_o = np.stack([v.origin for v in model.views]), cams.origin.numpy()
+    s, R, t = similarity(est_o, true_o)
+    distance = np.linalg.norm(true_o - true_o.mean(0), axis=1).mean()
+    centre_err = np.linalg.norm((s * est_o @ R.T + t) - true_o, axis=1) / distance
+    rot_err = np.array([math.degrees(math.acos(np.clip((np.trace(R @ v.basis.T @ b) - 1) / 2, -1, 1)))
+                        for v, b in zip(model.views, cams.basis.numpy())])
+    ball_fit = json.loads((work / "envmap.ball.json").read_text())
+    est_env = rotate_envmap(torch.from_numpy(read_envmap(work / "envmap.hdr")).double(), torch.from_numpy(R)).numpy()
+    # the hull: scene frame -> model frame (import.json) -> true frame (the similarity)
+    frame = json.loads((work / "scene" / IMPORT_FILE).read_text())["world_from_model"]
+    hull = trimesh.load(work / "result" / "visual_hull.ply")
+    p_model = hull.vertices @ np.array(frame["rotation"]) + frame["centre"]
+    hull = trimesh.Trimesh(s * p_model @ R.T + t, hull.faces, process=False)
+    true_cams = truth["cams"].select(truth["obj_idx"]).with_resolution(*scene_size)
+    true_hull = carve_visual_hull(object_masks(truth["mesh"], true_cams), true_cams.to(dtype=torch.float32),
+                                  preset().pipeline.hull).mesh
+    return dict(model=model, index=index, similarity=(s, R, t), rotation_err_deg=rot_err, centre_err=centre_err,
+                ball_fit=ball_fit,
+                ball_centre_err=float(np.linalg.norm(s * R @ ball_fit["centre"] + t - OBJECT_CENTRE) / OBJECT_RADIUS),
+                ball_radius_err=float(s * ball_fit["radius"] / OBJECT_RADIUS - 1),
+                residuals_px=[v["residual_px"] for v in ball_fit["views"]],
+                envmap_corr=log_luminance_correlation(est_env, resize_envmap(truth["env"], est_env.shape[0])),
+                hull_cd=shape_metrics(hull, truth["mesh"])["cd"],
+                hull_cd_true_cameras=shape_metrics(true_hull, truth["mesh"])["cd"],
+                hull_cd_fitted=shape_metrics(fitted_onto(hull, truth["mesh"]), truth["mesh"])["cd"],
+                hull_cd_true_cameras_fitted=shape_metrics(fitted_onto(true_hull, truth["mesh"]), truth["mesh"])["cd"])
