@@ -48,8 +48,9 @@ class NormalNetConfig:
     residual: bool = setting(False, "Predict a correction to the hull's normals (ours), not the normals.")
 
     # Settings that change no parameter: weights trained at one view count can start (--init)
-    # training at another -- the cost volume samples K neighbours whatever the rig.
-    FINE_TUNE_FREE: ClassVar[frozenset] = frozenset({"num_views", "cost_volume_theta_deg"})
+    # training at another -- the cost volume samples K neighbours whatever the rig -- and weights
+    # trained at one image size at another (the net is fully convolutional).
+    FINE_TUNE_FREE: ClassVar[frozenset] = frozenset({"num_views", "cost_volume_theta_deg", "width", "height"})
 
     @property
     def in_channels(self) -> int:
