@@ -90,7 +90,9 @@ def test_fairing_weakened_on_thin_parts_keeps_a_rod_on_its_masks():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         hull = carve_visual_hull(masks, cameras, HullConfig(resolution=64, num_threads=1))
-    strong = dataclasses.replace(CONFIG, fair_weight=60.0)
+    # the weights this was measured with (before 2026-11-26's): fairing 60 x the silhouettes', which shrinks the rod
+    strong = dataclasses.replace(CONFIG, silhouette_weight=1.0, fair_weight=60.0, silhouette_width_power=2.0,
+                                 fair_width_power=1.0)
     uniform = silhouette_iou(refine_surface(rod, hull, masks, cameras, strong).refined, cameras, masks)
     thin = dataclasses.replace(strong, fair_thickness=0.4)
     weakened = silhouette_iou(refine_surface(rod, hull, masks, cameras, thin).refined, cameras, masks)
@@ -250,20 +252,23 @@ def test_photos_are_checked_and_the_photometric_term_descends(scene, capture):
 
 
 def test_coarse_masks_pull_less():
-    """The silhouette weight applies whole from silhouette_width (480) up and falls as the width
-    squared below it (a 128-pixel mask's boundary is 3.75x coarser: (128/480)^2 of the weight); the
-    fairing, which those masks then hold back less, as the width. Fewer views than silhouette_views
-    pull harder."""
+    """The silhouette weight applies whole from silhouette_width (480) up and falls as a power of the
+    width below it (a 128-pixel mask's boundary is 3.75x coarser); the fairing, which those masks then
+    hold back less, as a lower power; the defaults give 128-pixel masks the weights measured there
+    (0.071 and 4). Fewer views than silhouette_views pull harder."""
     from lookingglass.refine import fair_weight, silhouette_weight
 
-    config = RefineConfig(silhouette_weight=2.0)
+    config = RefineConfig(silhouette_weight=2.0, silhouette_width_power=2.0)
     assert silhouette_weight(config, 480) == silhouette_weight(config, 1920) == 2.0
     assert silhouette_weight(config, 128) == pytest.approx(2.0 * (128 / 480) ** 2, rel=1e-12)
     assert silhouette_weight(config, 240) == pytest.approx(0.5, rel=1e-12)
     assert silhouette_weight(dataclasses.replace(config, silhouette_width=0), 64) == 2.0
+    assert silhouette_weight(RefineConfig(), 128) == pytest.approx(0.0711, rel=0.01)  # measured at 128x96
+    assert fair_weight(RefineConfig(), 128) == pytest.approx(4.0, rel=0.01)
     # fewer than silhouette_views (10) views: the weight times 10 / V; more: unchanged
     assert silhouette_weight(config, 480, 5) == pytest.approx(4.0, rel=1e-12)
     assert silhouette_weight(config, 480, 10) == silhouette_weight(config, 480, 20) == 2.0
     assert silhouette_weight(dataclasses.replace(config, silhouette_views=0), 480, 5) == 2.0
-    assert fair_weight(RefineConfig(), 480) == fair_weight(RefineConfig(), 1000) == 15.0
-    assert fair_weight(RefineConfig(), 128) == pytest.approx(4.0, rel=1e-12)  # the weight measured at 128x96
+    default = RefineConfig()
+    assert fair_weight(default, 480) == fair_weight(default, 1000) == default.fair_weight
+    assert fair_weight(default, 240) == pytest.approx(default.fair_weight * 0.5 ** default.fair_width_power, rel=1e-12)
