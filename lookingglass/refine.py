@@ -101,19 +101,19 @@ class RefineConfig:
                                  range=(0.01, None))
     band_px: float = setting(12.0, "Rim vertices farther than this from their mask's boundary are not pulled to it.",
                              range=(0, None))
-    silhouette_weight: float = setting(10.0, "Weight of the rim and outside constraints at masks of silhouette_width "
+    silhouette_weight: float = setting(20.0, "Weight of the rim and outside constraints at masks of silhouette_width "
                                             "pixels or wider.", range=(0, None))
     silhouette_width: int = setting(480, "Mask width at and above which the silhouette and fairing weights apply whole; "
                                          "a narrower mask's are scaled by (width / this)^silhouette_width_power and "
                                          "(width / this)^fair_width_power (0: never scaled).", range=(0, None))
-    silhouette_width_power: float = setting(3.74, "How fast the silhouette weight falls below silhouette_width.",
+    silhouette_width_power: float = setting(4.27, "How fast the silhouette weight falls below silhouette_width.",
                                             range=(0, 8))
-    fair_width_power: float = setting(2.44, "How fast the fairing weight falls below silhouette_width.", range=(0, 8))
+    fair_width_power: float = setting(2.96, "How fast the fairing weight falls below silhouette_width.", range=(0, 8))
     silhouette_views: int = setting(10, "View count at and above which the silhouette weight applies whole; with V "
                                         "fewer views it is multiplied by this / V (0: never scaled).", range=(0, None))
     smooth_weight: float = setting(1.0, "Weight of the Laplacian of the displacement (at edge 0.015).",
                                    range=(0, None))
-    fair_weight: float = setting(100.0, "Weight of the Laplacian of the positions (fairing; shrinks; at edge 0.015 and "
+    fair_weight: float = setting(200.0, "Weight of the Laplacian of the positions (fairing; shrinks; at edge 0.015 and "
                                        "masks silhouette_width wide, scaled below as fair_width_power says).",
                                  range=(0, None))
     fair_thickness: float = setting(0.0, "Local thickness (shape diameter, hull-normalized frame) below which the fairing "
@@ -372,10 +372,11 @@ def silhouette_weight(config: RefineConfig, mask_width: int, num_views: int | No
     rim pulled onto it takes its neighbourhood along. On scenes 1-6 of the 10-view test split
     (128x96) a weight of 1 made the surface worse (CDN-mean 13.0 -> 14.6, CD 7.75 -> 8.47), 0.07
     better (CDN-mean 10.3, CD 7.80) with every view's IoU still >= 0.983 (weight 0: worst IoU 0.960).
-    At 480x360 the masks are worth more: silhouettes and fairing both 10 x stronger than the weights
-    of 1 and 15 they had until 2026-11-26 (val480, 10 views) took CDN-mean 10.26 -> 9.09 (0.84 ->
-    0.75 x the hull's) and the worst view's IoU 0.976 -> 0.984 at the same CD; on the 128x96 test
-    split the same factor cost CDN-mean, so the power (3.74) brings 128-pixel masks back to 0.071.
+    At 480x360 the masks are worth more: silhouettes 20 and fairing 200 against the 1 and 15 they had
+    until 2026-11-26 (val480, 10 views) took CDN-mean 10.26 -> 8.79 (0.84 -> 0.72 x the hull's) and
+    the worst view's IoU 0.976 -> 0.984 at the same CD (5 views: CDN-mean 0.90 -> 0.79 x, CD +3%); on
+    the 128x96 test split a factor of 2 already cost CDN-mean, so the power (4.27) brings 128-pixel
+    masks back to 0.071.
 
     Views: fewer silhouettes hold less of the surface against the fairing, which then shrinks the rims
     off the masks. At 5 views (val480v5: key, bracket, nut, mug) twice the weight raised the worst
@@ -393,7 +394,7 @@ def fair_weight(config: RefineConfig, mask_width: int) -> float:
     (mask_width / silhouette_width)^fair_width_power below silhouette_width. Fairing irons out PNet's
     lumps but shrinks where the silhouettes do not hold the surface, and coarse masks hold it less:
     at 128x96 with the silhouettes at 0.07, 16 cut CDN-mean further but shrank the silhouettes (mean
-    IoU -0.002 to -0.003) and the keep check refused it; 4 is kept there (the power 2.44 gives it).
+    IoU -0.002 to -0.003) and the keep check refused it; 4 is kept there (the power 2.96 gives it).
     At 480x360 it goes with the silhouette weight, 10 x it (silhouette_weight's docstring)."""
     return config.fair_weight * _width_scale(config, mask_width) ** config.fair_width_power
 
