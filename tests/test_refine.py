@@ -258,7 +258,7 @@ def test_coarse_masks_pull_less():
     (0.071 and 4). Fewer views than silhouette_views pull harder."""
     from lookingglass.refine import fair_weight, silhouette_weight
 
-    config = RefineConfig(silhouette_weight=2.0, silhouette_width_power=2.0)
+    config = RefineConfig(silhouette_weight=2.0, silhouette_width_power=2.0, silhouette_views=10)
     assert silhouette_weight(config, 480) == silhouette_weight(config, 1920) == 2.0
     assert silhouette_weight(config, 128) == pytest.approx(2.0 * (128 / 480) ** 2, rel=1e-12)
     assert silhouette_weight(config, 240) == pytest.approx(0.5, rel=1e-12)
