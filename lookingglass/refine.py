@@ -123,8 +123,8 @@ class RefineConfig:
     anchor_weight: float = setting(0.05, "Weight of the displacement from the start (keeps each pull local).",
                                    range=(0, None))
     damping: float = setting(0.05, "Weight of the step length (proximal term).", range=(1e-6, None))
-    cg_iterations: int = setting(60, "Most conjugate-gradient iterations per linear solve (60 and 200 give the same "
-                                     "meshes at 480 px with the silhouettes at 10; 60 in two thirds of the time).",
+    cg_iterations: int = setting(60, "Most conjugate-gradient iterations per linear solve (60 and 200 gave the same "
+                                     "meshes on val480 with silhouettes 10 / fairing 100; 60 in 0.6 of the time).",
                                  range=(1, None))
     view_coverage_full: float = setting(0.97, "A view whose mask the hull covers at least this much has full weight.",
                                         range=(0, 1))
