@@ -13,7 +13,7 @@ from rich.markup import escape
 
 from .cliconfig import ConfigOptions, apply_config_flags, config_command
 from .errors import Interrupted, LookingGlassError
-from .physics.constants import IOR_GLASS, IOR_MAX, IOR_MIN, PAPER_CAPTURE_FOV_X_DEG, check_ior
+from .physics.constants import IOR_GLASS, IOR_MAX, IOR_MIN, PAPER_CAPTURE_FOV_X_DEG, check_ior, check_ior_range
 from .presets import DEFAULT_PRESET, PRESET_NAMES
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
@@ -78,6 +78,10 @@ def reconstruct(
     reporter = Reporter(quiet=quiet)
     report = run(scene_dir, out, dataclasses.replace(resolved), force=force, reporter=reporter)
     reporter.info(f"wrote {out / 'mesh.ply'} ({report['total_seconds']:.1f} s)")
+    if "ior_estimate" in report:
+        found = report["ior_estimate"]
+        reporter.info(f"IoR estimate: {found['value']:.3f} +- {found['uncertainty']:.3f}"
+                      + ("" if found["reliable"] else " (not reliable: see the warning)"))
 
 
 @app.command()
@@ -497,7 +501,7 @@ def _held_ior(text: str) -> float | None:
     """An evaluation's --ior: None for "scene" (each scene's own), else the number, checked."""
     from .config import parse_ior
 
-    ior = parse_ior(text, "--ior")
+    ior = parse_ior(text, "--ior", choices=("scene",))  # an evaluation holds the IoR known or fixed
     return None if ior == "scene" else ior
 
 
@@ -584,6 +588,10 @@ def generate_validation(
     size: tuple[int, int] = typer.Option((480, 360), "--size", help="Image size W H."),
     samples_per_axis: int = typer.Option(4, help="Anti-aliasing: s x s samples per pixel."),
     seed: int = typer.Option(0, help="Rotation, rig and rendering seed."),
+    ior_range: Optional[tuple[float, float]] = typer.Option(None, "--ior-range", show_default=False,
+                                                  help=f"LO HI: each shape's IoR drawn from [LO, HI] (from {IOR_MIN} "
+                                                       f"to {IOR_MAX}; a set to judge `--ior auto` on); default: "
+                                                       f"{IOR_GLASS} for all."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Render shapes unlike the procedural training set (CAD parts, handles, thin parts, figurines) as
@@ -597,7 +605,9 @@ def generate_validation(
         raise LookingGlassError(f"--views must be 5, 10 or 20, got {views}")
     size = check_image_size(size, "--size")
     names = [n.strip() for n in shapes.split(",") if n.strip()] or None
-    path = generate_validation_set(out, names, views, size, samples_per_axis, seed, reporter=Reporter(quiet=quiet))
+    bounds = None if ior_range is None else check_ior_range(ior_range, "--ior-range")
+    path = generate_validation_set(out, names, views, size, samples_per_axis, seed, reporter=Reporter(quiet=quiet),
+                                   ior_range=bounds)
     Console(stderr=True).print(f"wrote {path}")
 
 

@@ -19,18 +19,19 @@ from .refine import RefineConfig
 
 
 STAGES = ("visual_hull", "normals", "surface", "refine")
-IOR_CHOICES = ("scene",)  # the words `ior` takes besides a number
+IOR_CHOICES = ("scene", "auto")  # the words `ior` takes besides a number
 
 
-def parse_ior(text: str, name: str = "ior") -> str | float:
-    """PipelineConfig.ior read: one of IOR_CHOICES ("scene": scene.json's IoR) as it is, else the
-    number it holds, in [IOR_MIN, IOR_MAX]. Raises ConfigError naming `name` and the text."""
-    if text in IOR_CHOICES:
+def parse_ior(text: str, name: str = "ior", choices: tuple[str, ...] = IOR_CHOICES) -> str | float:
+    """PipelineConfig.ior read: one of `choices` ("scene": scene.json's IoR; "auto": estimated from
+    the photos, lookingglass/ior.py) as it is, else the number it holds, in [IOR_MIN, IOR_MAX].
+    Raises ConfigError naming `name` and the text."""
+    if text in choices:
         return text
     try:
         value = float(text)
     except (TypeError, ValueError):
-        words = " or ".join(IOR_CHOICES)
+        words = ", ".join(choices)
         raise ConfigError(f"{name} must be {words} or an index of refraction from {IOR_MIN} to {IOR_MAX}, "
                           f"got {text!r}") from None
     return check_ior(value, name, ConfigError)
@@ -40,9 +41,9 @@ def parse_ior(text: str, name: str = "ior") -> str | float:
 class PipelineConfig:
     """Everything `reconstruct` needs. device: "cpu", "cuda", "cuda:1", ... ("auto" = cuda if
     present; resolved once, and every stage, the hull's carving included, runs there).
-    stop_after: the last of STAGES to run. ior: `parse_ior`'s text, the IoR every stage assumes.
-    ior_range: (LO, HI), LO < HI, checked but read by no stage yet: the range an estimate of the
-    IoR will search (issue 22; the estimate tried is not shipped, docs/results.md)."""
+    stop_after: the last of STAGES to run. ior: `parse_ior`'s text, the IoR every stage assumes
+    ("auto": IOR_GLASS moved into ior_range, then estimated from the kept mesh and the photos).
+    ior_range: (LO, HI), LO < HI: the range `--ior auto` searches."""
 
     hull: HullConfig = field(default_factory=HullConfig)
     normals: NormalStageConfig = field(default_factory=NormalStageConfig)
@@ -51,11 +52,10 @@ class PipelineConfig:
     stop_after: str = setting("refine", f"Last stage to run: {', '.join(STAGES)}.")
     device: str = setting("auto", "cpu, cuda, cuda:N or auto (cuda when present).")
     seed: int = setting(0, "Not read by any stage yet (the point sampling takes surface.seed).")
-    ior: str = setting("scene", f"Index of refraction of the object: scene (scene.json's) or a number from {IOR_MIN} "
-                       f"to {IOR_MAX}, used instead.")
+    ior: str = setting("scene", f"Index of refraction of the object: scene (scene.json's), a number from {IOR_MIN} "
+                       f"to {IOR_MAX}, or auto: estimated from the photos at the end (ior_estimate).")
     ior_range: tuple[float, float] = setting((1.3, 1.7), f"LO HI, LO < HI, from {IOR_MIN} to {IOR_MAX}: the indices of "
-                                             "refraction an estimate of the IoR will search (no stage reads it yet: "
-                                             "the IoR is not estimated).")
+                                             "refraction searched when ior is auto.")
 
     def __post_init__(self) -> None:
         if self.stop_after not in STAGES:

@@ -11,7 +11,7 @@ better of the surface and the refined mesh is kept). Outputs (capture frame, wri
   OUT/refine.png       a few views: the photo, the mask's outline over the kept mesh's silhouette, its re-rendering
   OUT/mesh.ply         the surface of the last stage that ran (the hull when only it ran)
   OUT/report.json      stages asked for and run, completed, per-stage seconds and peak memory, sizes,
-                       versions, config
+                       versions, config; with --ior auto the IoR estimated from mesh.ply (ior_estimate)
   OUT/report.html      all of it for a person, one self-contained page (lookingglass/report/)
 OUT appears only when the run has finished (it is written in a temporary folder beside it): a failed
 or interrupted run leaves no partial result, and an earlier OUT replaced with --force stays whole
@@ -33,9 +33,10 @@ import trimesh
 from . import __version__
 from .capture.scene import SCENE_FILE, Capture, load_capture
 from .config import STAGES, PipelineConfig, config_to_dict, parse_ior
-from .errors import LookingGlassError
+from .errors import LookingGlassError, LookingGlassWarning
 from .fileio import staged_dir, write_atomic, write_json
 from .hull import VisualHull, carve_visual_hull
+from .ior import MIN_CONTRAST, assumed_ior, estimate_ior
 from .normals.stage import NormalStageResult, run_normal_stage, write_normal_views
 from .points.stage import surface_from_normals
 from .progress import Reporter, peak_memory_mb
@@ -118,11 +119,31 @@ def _normal_weights(capture, config: PipelineConfig,
 
 def _assumed_ior(capture: Capture, config: PipelineConfig) -> tuple[Capture, str]:
     """The capture with the IoR every stage assumes (they read `capture.ior`), and where it came
-    from: "scene" (scene.json's) or "config" (a number in `config.ior`, e.g. `--ior 1.6`)."""
+    from: "scene" (scene.json's), "config" (a number in `config.ior`, e.g. `--ior 1.6`) or "auto"
+    (the networks' IoR in `config.ior_range`, until the estimate after the last stage)."""
     ior = parse_ior(config.ior)
     if ior == "scene":
         return capture, "scene"
+    if ior == "auto":
+        return capture.with_ior(assumed_ior(config.ior_range)), "auto"
     return capture.with_ior(ior), "config"
+
+
+def _estimate_ior(capture: Capture, mesh: trimesh.Trimesh, mesh_stage: str, config: PipelineConfig,
+                  reporter: Reporter) -> dict:
+    """`--ior auto`: the IoR at which the kept mesh best explains the photos (lookingglass/ior.py);
+    a warning when the estimate is not to be trusted."""
+    with reporter.stage("ior", "IoR estimate") as rec:
+        estimate = estimate_ior(mesh, capture, config.ior_range, device=config.device)
+        found = {**estimate.report(), "mesh_from": mesh_stage}
+        rec.update(found)
+    if not estimate.reliable:
+        why = (f"at the end of the range {config.ior_range[0]}-{config.ior_range[1]}" if estimate.at_bound else
+               f"the photos hardly tell the candidates apart (contrast {estimate.contrast:.3f} < {MIN_CONTRAST})")
+        warnings.warn(LookingGlassWarning(
+            f"IoR estimate {estimate.value:.3f} +- {estimate.uncertainty:.3f} is not reliable: {why}; the mesh "
+            "explains too little of the refraction, and shape errors bias it low. Pass --ior if the material is known"))
+    return found
 
 
 def _normals(capture, hull: VisualHull, weights: NormalWeights, trained_views: int, requested: int,
@@ -245,6 +266,7 @@ def _run(scene_dir: Path, out_dir: Path, config: PipelineConfig, wanted: tuple[s
                 refined = _refine(capture, hull, best, normals, config, out_dir, reporter)
                 best, best_stage, rendered = refined.mesh, "refine", refined.rerendering
         write_mesh(out_dir / "mesh.ply", best)
+        estimate = _estimate_ior(capture, best, best_stage, config, reporter) if ior_source == "auto" else None
     messages = [str(w.message) for w in caught]
     for message in messages:
         reporter.warn(message)
@@ -256,6 +278,7 @@ def _run(scene_dir: Path, out_dir: Path, config: PipelineConfig, wanted: tuple[s
         "image_size": [capture.width, capture.height],
         "ior": capture.ior,
         "ior_source": ior_source,
+        **({"ior_estimate": estimate} if estimate is not None else {}),
         "device": device,
         "stages_requested": list(wanted),
         "stages_run": [s["name"] for s in reporter.stages[first:] if s["name"] in STAGES],

@@ -121,6 +121,11 @@ def evaluate_validation_set(root, out, config: PipelineConfig | None = None, nam
             record["refine"] = {"kept": refine["kept"], "iou_min": min(refine[chosen]),
                                 "iou_min_surface": min(refine["silhouette_iou_before"]), "seconds": refine["seconds"]}
         capture = load_capture(scene)
+        if "ior_estimate" in report:  # --ior auto: the estimate beside scene.json's IoR, the truth
+            found = report["ior_estimate"]
+            record["ior"] = {"true": float(capture.ior), "estimate": found["value"],
+                             "uncertainty": found["uncertainty"], "reliable": found["reliable"],
+                             "contrast": found["contrast"], "seconds": found["seconds"]}
         with torch.inference_mode():
             record.update(normal_errors(out / name, capture, gt, hull))
         # how well each mesh explains the photos (render/compare.py); the refine stage has already
@@ -196,4 +201,16 @@ def markdown_table(result: dict) -> str:
         m_all = result["families"]["all"]
         cells = " | ".join(three([m_all[f"{k}_{m}"] for k in kinds], m) for m in ("cd", "cdn_mean", "rerender"))
         lines.append(f"| **all** | {cells} | | |")
+    estimated = [r for r in result["scenes"] if "ior" in r]
+    if estimated:
+        lines += ["", "| scene | IoR true | estimate | error | contrast | reliable |", "|---|---|---|---|---|---|"]
+        for r in estimated:
+            e = r["ior"]
+            lines.append(f"| {r['name']} | {e['true']:.4f} | {e['estimate']:.4f} +- {e['uncertainty']:.4f} | "
+                         f"{e['estimate'] - e['true']:+.4f} | {e['contrast']:.3f} | {'yes' if e['reliable'] else 'no'} |")
+        for label, rs in (("all", estimated), ("reliable", [r for r in estimated if r["ior"]["reliable"]])):
+            if rs:
+                err = np.abs([r["ior"]["estimate"] - r["ior"]["true"] for r in rs])
+                lines.append(f"| **{label}** | {len(rs)} scenes | median abs error {np.median(err):.4f} | within 0.03: "
+                             f"{int((err <= 0.03).sum())} of {len(rs)} | | |")
     return "\n".join(lines)

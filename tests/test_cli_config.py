@@ -49,7 +49,7 @@ def help_line(command: str, flag: str) -> str:
     ("generate", "--shape.target-faces", ["[default: 24000]"]),
     ("generate", "--ior-range", ["from 1.0 to 3.0", "[default: 1.4723, 1.4723]"]),
     ("generate", "--ior-per-shape", ["[default: 1]"]),
-    ("reconstruct", "--ior", ["scene (scene.json's)", "[default: scene]"]),
+    ("reconstruct", "--ior", ["scene (scene.json's)", "or auto: estimated from the photos", "[default: scene]"]),
     ("reconstruct", "--ior-range", ["LO < HI", "[default: 1.3, 1.7]"]),
 ])
 def test_help_lists_config_fields_with_the_presets_defaults(command, flag, shown):
@@ -68,7 +68,7 @@ def test_help_lists_config_fields_with_the_presets_defaults(command, flag, shown
     (["reconstruct", "no_scene", "--out", "o", "--ior", "0.9"],
      "--ior=0.9: ior must be an index of refraction from 1.0 to 3.0 (glass is about 1.5), got 0.9"),
     (["reconstruct", "no_scene", "--out", "o", "--ior", "abc"],
-     "--ior=abc: ior must be scene or an index of refraction"),
+     "--ior=abc: ior must be scene, auto or an index of refraction"),
     (["reconstruct", "no_scene", "--out", "o", "--ior-range", "1.7", "1.3"],
      "--ior-range=1.7 1.3: ior_range: LO must be below HI, got 1.7 1.3"),
     (["generate", "--out", "o", "--scenes", "1", "--ior-range", "1.3", "3.5"], "ior_range must be an index of "

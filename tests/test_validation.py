@@ -64,3 +64,24 @@ def test_reconstruct_scored_against_the_hull(tmp_path):
     stamp = (tmp_path / "out" / "pebble" / "report.json").stat().st_mtime_ns
     evaluate_validation_set(tmp_path / "set", tmp_path / "out", config)
     assert (tmp_path / "out" / "pebble" / "report.json").stat().st_mtime_ns == stamp
+
+
+def test_variable_ior_set_and_its_estimates(tmp_path):
+    """generate-validation --ior-range: each shape its own seeded IoR in the range, written to its
+    scene.json and the same in another folder; index.json records the range, and a folder made
+    without one refuses it. validate with --ior auto puts each estimate beside that truth."""
+    small = dict(names=["pebble"], views=5, size=(64, 48), samples_per_axis=1)
+    generate_validation_set(tmp_path / "a", ior_range=(1.3, 1.7), **small)
+    generate_validation_set(tmp_path / "b", ior_range=(1.3, 1.7), **small)
+    iors = [json.loads((tmp_path / f / "pebble" / "scene" / "scene.json").read_text())["ior"] for f in "ab"]
+    assert iors[0] == iors[1] and 1.3 <= iors[0] <= 1.7 and iors[0] != pytest.approx(1.4723, abs=1e-3)
+    assert json.loads((tmp_path / "a" / "index.json").read_text())["ior_range"] == [1.3, 1.7]
+    generate_validation_set(tmp_path / "c", **small)
+    with pytest.raises(LookingGlassError, match="other settings"):
+        generate_validation_set(tmp_path / "c", ior_range=(1.3, 1.7), **small)
+    config = PipelineConfig(device="cpu", stop_after="visual_hull", ior="auto")
+    result = evaluate_validation_set(tmp_path / "a", tmp_path / "out", config)
+    (record,) = result["scenes"]
+    assert record["ior"]["true"] == iors[0] and 1.3 <= record["ior"]["estimate"] <= 1.7
+    table = markdown_table(result)
+    assert "| IoR true |" in table and f"| {iors[0]:.4f} |" in table and "median abs error" in table

@@ -32,6 +32,7 @@ import numpy as np
 import trimesh
 
 from ..errors import LookingGlassError
+from ..physics.constants import IOR_GLASS
 from ..fileio import write_atomic, write_json
 from ..progress import Reporter
 from .families import EDGE, blob, boolean, cylinder, finish, moved
@@ -126,9 +127,11 @@ def validation_shape(name: str, seed: int = 0) -> trimesh.Trimesh:
 
 def generate_validation_set(out, names: list[str] | None = None, views: int = 10, size=(480, 360),
                             samples_per_axis: int = 4, seed: int = 0, envmap_folder=None,
-                            reporter: Reporter | None = None) -> Path:
+                            reporter: Reporter | None = None, ior_range: tuple[float, float] | None = None) -> Path:
     """Render the validation shapes (all, or `names`) into OUT (see the module docstring);
-    finished scenes are kept. Returns OUT/index.json."""
+    finished scenes are kept. Returns OUT/index.json. ior_range: each shape's glass gets its own
+    IoR drawn uniformly from (LO, HI) (seeded per shape; a set to judge an IoR estimate on), else
+    IOR_GLASS."""
     from ..capture.images import read_envmap
     from ..render.tracer import RenderConfig
     from .dataset import DatasetConfig
@@ -150,13 +153,16 @@ def generate_validation_set(out, names: list[str] | None = None, views: int = 10
         mesh = validation_shape(name, seed)
         env = read_envmap(folder / test_envmaps[k % len(test_envmaps)])
         cameras = paper_rig(views, seed + k, width=size[0], height=size[1])
-        render_capture(mesh, env, cameras, scene_dir / "scene", RenderConfig(samples_per_axis=samples_per_axis,
+        ior = IOR_GLASS if ior_range is None else float(np.random.default_rng([seed, k, 1]).uniform(*ior_range))
+        render_capture(mesh, env, cameras, scene_dir / "scene", RenderConfig(ior=ior, samples_per_axis=samples_per_axis,
                                                                             seed=seed + k), overwrite=True)
         write_atomic(scene_dir / "ground_truth.ply", lambda p, m=mesh: m.export(p, file_type="ply"))
     settings = {"views": views, "size": list(size), "samples_per_axis": samples_per_axis, "seed": seed}
+    if ior_range is not None:  # absent otherwise, so sets made before the option stay valid
+        settings["ior_range"] = [float(v) for v in ior_range]
     index_path = out / "index.json"
     earlier = json.loads(index_path.read_text()) if index_path.exists() else {}
-    if earlier and {k: earlier.get(k) for k in settings} != settings:
+    if earlier and {k: earlier.get(k) for k in [*settings, "ior_range"]} != {"ior_range": None, **settings}:
         raise LookingGlassError("the folder holds validation scenes made with other settings; pick another --out",
                                 index_path)
     shapes = {**earlier.get("shapes", {}), **{n: SHAPES[n][0] for n in names}}
