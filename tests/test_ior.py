@@ -164,6 +164,8 @@ def test_reconstruct_ior_auto(scene, tmp_path):
     assert any(s["name"] == "ior" and s["seconds"] > 0 for s in report["stages"])
     flagged = [w for w in report["warnings"] if w.startswith("IoR estimate")]
     assert len(flagged) == (0 if found["reliable"] else 1) and all("Pass --ior" in w for w in flagged)
+    page = (tmp_path / "auto" / "report.html").read_text()
+    assert f"estimated {found['value']:.3f} ± {found['uncertainty']:.3f} from the photos" in page
     narrow = pipeline.reconstruct(scene, tmp_path / "narrow", dataclasses.replace(QUICK, ior="auto",
                                                                                     ior_range=(1.55, 1.7)))
     assert narrow["ior"] == 1.55 and narrow["ior_estimate"]["range"] == [1.55, 1.7]

@@ -110,6 +110,11 @@ def side_panel(data: ReportData) -> str:
                      f'peak memory {r.get("peak_memory_mb", 0):,.0f} MiB'),
             ("re-rendering error", f'{mean:.4f}' + (f' (hull {sum(hull_errors) / len(hull_errors):.4f})' if hull_errors else "")
              + ' <span class="muted">mean |photo − render|, all views</span>')]
+    if r.get("ior") is not None:
+        found = r.get("ior_estimate")
+        rows.append(("IoR", f'{r["ior"]:.4f} <span class="muted">({escape(str(r.get("ior_source")))})</span>' +
+                     (f'; estimated {found["value"]:.3f} ± {found["uncertainty"]:.3f} from the photos'
+                      + ('' if found["reliable"] else ' <span class="worse">(not reliable)</span>') if found else "")))
     if r.get("warnings"):
         rows.append(("warnings", f'<a href="#warnings" class="worse">{len(r["warnings"])}</a>'))
     html = ['<div class="card"><table class="kv">' +

@@ -3,7 +3,8 @@ with the IoR held at 1.4723 (the stored hull, `run_normal_stage`, `surface_from_
 net, `refine_surface`), then `lookingglass.ior.estimate_ior` on the refined mesh, against the scene's true IoR.
 
 Usage (the split: `lookingglass generate --out data/data10_varior --split test --ior-range 1.3 1.7 --ior-per-shape 5`):
-    .venv/bin/python scripts/experiments/ior_auto_split.py data/data10_varior FIRST LAST [--json OUT.json]
+    .venv/bin/python scripts/experiments/ior_auto_split.py data/data10_varior FIRST LAST [--json OUT.json] [--meshes DIR]
+(--meshes: the refined meshes are kept there and reused by a later run, which then only estimates.)
 Prints one line per scene and the median |error| over all and over the estimates flagged reliable.
 """
 
@@ -12,12 +13,14 @@ from __future__ import annotations
 import json
 import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 
 from lookingglass.config import PipelineConfig
 from lookingglass.data.torch_dataset import TransparentSceneDataset
 from lookingglass.ior import estimate_ior
+from lookingglass.metrics import load_mesh
 from lookingglass.normals.stage import run_normal_stage
 from lookingglass.physics.constants import IOR_GLASS
 from lookingglass.points.stage import surface_from_normals
@@ -27,7 +30,8 @@ from lookingglass.weights import load_normal_net, load_point_net, shipped_weight
 
 def main(argv: list[str]) -> int:
     out = argv[argv.index("--json") + 1] if "--json" in argv else None
-    args = [a for a in argv if not a.startswith("--") and a != out]
+    meshes = Path(argv[argv.index("--meshes") + 1]) if "--meshes" in argv else None
+    args = [a for a in argv if not a.startswith("--") and a not in (out, str(meshes))]
     ds = TransparentSceneDataset(args[0], "test", views=10)
     first, last = int(args[1]), min(int(args[2]), len(ds))
     config = PipelineConfig(device="cpu")
@@ -37,13 +41,20 @@ def main(argv: list[str]) -> int:
     for i in range(first, last):
         capture, hull = ds.capture(i, IOR_GLASS), ds.hull(i)
         true_ior = ds.capture(i).ior
+        kept = meshes / f"scene_{i:05d}.ply" if meshes else None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            normals = run_normal_stage(capture, hull, normal_net, config.normals.latent, "cpu")
-            surface, _ = surface_from_normals(hull, normals.maps, config.surface, point_net)
-            refined = refine_surface(surface, hull, capture.masks, capture.cameras, config.refine, capture=capture,
-                                     normals=normals)
-            est = estimate_ior(refined.mesh, capture, config.ior_range)
+            if kept is not None and kept.exists():  # made by an earlier run: the estimate alone
+                mesh = load_mesh(kept)
+            else:
+                normals = run_normal_stage(capture, hull, normal_net, config.normals.latent, "cpu")
+                surface, _ = surface_from_normals(hull, normals.maps, config.surface, point_net)
+                mesh = refine_surface(surface, hull, capture.masks, capture.cameras, config.refine, capture=capture,
+                                      normals=normals).mesh
+                if kept is not None:
+                    kept.parent.mkdir(parents=True, exist_ok=True)
+                    mesh.export(kept)
+            est = estimate_ior(mesh, capture, config.ior_range)
         rows.append({"scene": i, "true": true_ior, "estimate": est.value, "uncertainty": est.uncertainty,
                      "reliable": est.reliable, "contrast": est.contrast, "seconds": est.seconds})
         err = np.abs([r["estimate"] - r["true"] for r in rows])
