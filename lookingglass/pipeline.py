@@ -138,11 +138,13 @@ def _estimate_ior(capture: Capture, mesh: trimesh.Trimesh, mesh_stage: str, conf
         found = {**estimate.report(), "mesh_from": mesh_stage}
         rec.update(found)
     if not estimate.reliable:
-        why = (f"at the end of the range {config.ior_range[0]}-{config.ior_range[1]}" if estimate.at_bound else
-               f"the photos hardly tell the candidates apart (contrast {estimate.contrast:.3f} < {MIN_CONTRAST})")
+        why = (f"its minimum is at an end of the range {config.ior_range[0]}-{config.ior_range[1]} (the IoR may lie "
+               "beyond it: widen --ior-range)" if estimate.at_bound else
+               f"the photos hardly tell the candidates apart (contrast {estimate.contrast:.3f} < {MIN_CONTRAST}: the "
+               "mesh explains too little of the refraction)")
         warnings.warn(LookingGlassWarning(
-            f"IoR estimate {estimate.value:.3f} +- {estimate.uncertainty:.3f} is not reliable: {why}; the mesh "
-            "explains too little of the refraction, and shape errors bias it low. Pass --ior if the material is known"))
+            f"IoR estimate {estimate.value:.3f} +- {estimate.uncertainty:.3f} is not reliable: {why}; errors in the "
+            "shape bias it low. Pass --ior if the material is known"))
     return found
 
 
