@@ -12,8 +12,8 @@ best where it refracts least, so errors in the mesh bias the estimate LOW (measu
 shape it is within 0.01; with the final mesh of 480x360 captures within 0.02 where the curve is deep,
 0.07-0.17 low where it is flat; with a 128x96 capture's hull at the range's end; docs/results.md,
 "Estimating the IoR"). So the pipeline estimates it last, from the kept (refined) mesh, and calls the
-estimate reliable only where the cost curve is deep enough (max / min >= MIN_CONTRAST) and its minimum
-inside the range. The stages before assume IOR_GLASS (the networks' training IoR): a wrong IoR moves
+estimate reliable only where the cost curve is deep enough (max / min >= MIN_CONTRAST), its minimum
+inside the range and the photos at least RELIABLE_MIN_WIDTH wide. The stages before assume IOR_GLASS (the networks' training IoR): a wrong IoR moves
 the final mesh by ~1% in CD (docs/results.md, the variable-IoR tables), so they are not run again.
 """
 
@@ -39,13 +39,17 @@ BOOTSTRAP = 200
 # The cost curve's highest value over its lowest. Where the mesh explains too little of the photos for
 # the IoR to change much (validation set: bracket, mug, finned body 1.02), the minimum is not the IoR.
 MIN_CONTRAST = 1.05
+# Photos narrower than this: the flag is not to be trusted. At 128x96 (the variable-IoR test split) the estimate
+# is 0.09 off in the median with curves as deep as those of good 480x360 meshes; widths between are unmeasured.
+RELIABLE_MIN_WIDTH = 480
 
 
 @dataclass
 class IorEstimate:
     """value: the estimate; uncertainty: its bootstrap standard deviation over views (it does not
     cover a biased shape); candidates (K,) and cost (K,) the curve minimized; at_bound: the minimum
-    is at an end of the range; contrast: the curve's max over its min; seconds: time taken."""
+    is at an end of the range; contrast: the curve's max over its min; seconds: time taken;
+    photo_width: the capture's width in pixels."""
 
     value: float
     uncertainty: float
@@ -54,15 +58,17 @@ class IorEstimate:
     at_bound: bool
     contrast: float
     seconds: float
+    photo_width: int
 
     @property
     def reliable(self) -> bool:
-        """The minimum is inside the range and the curve deep enough (MIN_CONTRAST) to mean it."""
-        return not self.at_bound and self.contrast >= MIN_CONTRAST
+        """The minimum is inside the range, the curve deep enough (MIN_CONTRAST) to mean it, and the
+        photos as wide as those it was validated on (RELIABLE_MIN_WIDTH)."""
+        return not self.at_bound and self.contrast >= MIN_CONTRAST and self.photo_width >= RELIABLE_MIN_WIDTH
 
     def report(self) -> dict:
         return {"value": round(self.value, 4), "uncertainty": round(self.uncertainty, 4),
-                "reliable": self.reliable, "contrast": round(self.contrast, 4),
+                "reliable": self.reliable, "contrast": round(self.contrast, 4), "photo_width": self.photo_width,
                 "range": [float(self.candidates[0]), float(self.candidates[-1])], "at_bound": self.at_bound,
                 "candidates": [round(float(c), 4) for c in self.candidates],
                 "cost": [round(float(c), 5) for c in self.cost], "seconds": round(self.seconds, 2)}
@@ -121,4 +127,5 @@ def estimate_ior(mesh: trimesh.Trimesh, capture, ior_range: tuple[float, float],
     boot = [parabola_minimum(sums[:, d].sum(axis=1) / max(counts[d].sum(), 1), candidates) for d in draws]
     i = int(np.argmin(cost))
     return IorEstimate(value, float(np.std(boot)), candidates, cost, i in (0, len(cost) - 1),
-                       float(cost.max() / max(cost.min(), 1e-12)), time.perf_counter() - start)
+                       float(cost.max() / max(cost.min(), 1e-12)), time.perf_counter() - start,
+                       int(capture.masks.shape[2]))

@@ -36,7 +36,7 @@ from .config import STAGES, PipelineConfig, config_to_dict, parse_ior
 from .errors import LookingGlassError, LookingGlassWarning
 from .fileio import staged_dir, write_atomic, write_json
 from .hull import VisualHull, carve_visual_hull
-from .ior import MIN_CONTRAST, assumed_ior, estimate_ior
+from .ior import MIN_CONTRAST, RELIABLE_MIN_WIDTH, assumed_ior, estimate_ior
 from .normals.stage import NormalStageResult, run_normal_stage, write_normal_views
 from .points.stage import surface_from_normals
 from .progress import Reporter, peak_memory_mb
@@ -141,7 +141,9 @@ def _estimate_ior(capture: Capture, mesh: trimesh.Trimesh, mesh_stage: str, conf
         why = (f"its minimum is at an end of the range {config.ior_range[0]}-{config.ior_range[1]} (the IoR may lie "
                "beyond it: widen --ior-range)" if estimate.at_bound else
                f"the photos hardly tell the candidates apart (contrast {estimate.contrast:.3f} < {MIN_CONTRAST}: the "
-               "mesh explains too little of the refraction)")
+               "mesh explains too little of the refraction)" if estimate.contrast < MIN_CONTRAST else
+               f"photos {estimate.photo_width} px wide give a mesh too coarse for it (validated from "
+               f"{RELIABLE_MIN_WIDTH} px; at 128 px it is ~0.09 off)")
         warnings.warn(LookingGlassWarning(
             f"IoR estimate {estimate.value:.3f} +- {estimate.uncertainty:.3f} is not reliable: {why}; errors in the "
             "shape bias it low. Pass --ior if the material is known"))
