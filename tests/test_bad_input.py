@@ -261,7 +261,7 @@ PROBES = [
     Probe("scene_ior_3.5", edit_scene(lambda d: d.update(ior=3.5), "got 3.5")),
     # the IoR reconstruct assumes (--ior, --ior-range)
     Probe("ior_0.9", flag_probe("--ior", 0.9, names="--ior=0.9", fragments=["from 1.0 to 3.0"])),
-    Probe("ior_word", flag_probe("--ior", "abc", names="--ior=abc", fragments=["scene or an index of refraction"])),
+    Probe("ior_word", flag_probe("--ior", "abc", names="--ior=abc", fragments=["scene, auto or an index of refraction"])),
     Probe("ior_range_reversed", flag_probe("--ior-range", 1.7, 1.3, names="--ior-range",
                                            fragments=["LO must be below HI, got 1.7 1.3"])),
     Probe("ior_range_below_1", flag_probe("--ior-range", 0.5, 1.3, names="--ior-range", fragments=["got 0.5"])),
