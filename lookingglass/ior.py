@@ -1,8 +1,7 @@
 """The object's index of refraction estimated from the photos (`reconstruct --ior auto`, issue 22).
 
-The reconstructed mesh is rendered as glass (the project's renderer, `render_views`) under the
-capture's environment map at candidate IoRs IOR_STEP apart over the range asked for, and compared with
-the photos (normalized as the re-rendering check does, `render.compare.photos_at`): the cost is the
+The reconstructed mesh is re-rendered as glass (`render.compare.rerender`, the re-rendering check's
+renderer and photo normalization) at candidate IoRs IOR_STEP apart over the range asked for: the cost is the
 mean over the pixels inside both the mask and the mesh's silhouette of min(|render - photo|,
 ERROR_CLIP) per channel; the estimate is the minimum of the parabola through the lowest candidate and
 its neighbours, its uncertainty the bootstrap standard deviation over views.
@@ -23,14 +22,11 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 import trimesh
 
 from .errors import LookingGlassError
 from .physics.constants import IOR_GLASS
-from .physics.environment import EnvironmentMap
-from .render.compare import photos_at
-from .render.tracer import RenderConfig, render_views
+from .render.compare import rerender
 
 IOR_STEP = 0.025  # candidate spacing: the parabola then resolves ~0.005
 ERROR_CLIP = 0.05  # per-channel difference beyond which a pixel counts as unexplained (normalized photos)
@@ -103,21 +99,14 @@ def estimate_ior(mesh: trimesh.Trimesh, capture, ior_range: tuple[float, float],
     """The IoR in `ior_range` at which `mesh` (closed, outward, the capture's frame) rendered as
     glass best explains `capture`'s photos (module docstring). capture: a loaded `Capture`."""
     start = time.perf_counter()
-    photos, masks, factor = photos_at(capture, width)
-    height, width = masks.shape[1:]
-    cams = capture.cameras.with_resolution(width, height)
-    envmap = EnvironmentMap(torch.as_tensor(capture.envmap).float())
     candidates = candidate_iors(ior_range)
     sums = np.zeros((len(candidates), capture.num_views))  # per candidate and view: clipped differences
-    counts = np.zeros(capture.num_views)  # pixels they are over (the silhouette is the mesh's: any IoR)
     for k, ior in enumerate(candidates):
-        result = render_views(mesh, envmap, cams, RenderConfig(ior=float(ior), samples_per_axis=1, seed=seed,
-                                                               device=device))
-        renders = (result.image.cpu() * factor).clamp(0, 1)
-        region = (masks & result.mask.cpu()).float()
-        clipped = (renders - photos).abs().clamp(max=ERROR_CLIP).mean(dim=-1)
-        sums[k] = (clipped * region).sum(dim=(1, 2)).numpy()
-        counts = region.sum(dim=(1, 2)).numpy()
+        shown = rerender(mesh, capture, width, samples_per_axis=1, device=device, seed=seed, ior=float(ior))
+        region = shown.masks & shown.silhouettes  # the silhouette is the mesh's: the same at any IoR
+        clipped = np.minimum(np.abs(shown.renders - shown.photos), ERROR_CLIP).mean(axis=-1)
+        sums[k] = (clipped * region).sum(axis=(1, 2))
+    counts = region.sum(axis=(1, 2)).astype(np.float64)
     if counts.sum() == 0:
         raise LookingGlassError("the mesh's silhouette meets no mask: nothing to estimate the IoR from",
                                 getattr(capture, "root", None))

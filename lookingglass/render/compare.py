@@ -56,15 +56,16 @@ def photos_at(capture, width: int) -> tuple[torch.Tensor, torch.Tensor, float]:
 
 
 def rerender(mesh: trimesh.Trimesh, capture, width: int = RERENDER_WIDTH, samples_per_axis: int = 2,
-             threads: int | None = None, device: str = "cpu", seed: int = 0) -> Rerendering:
+             threads: int | None = None, device: str = "cpu", seed: int = 0, ior: float | None = None) -> Rerendering:
     """Render `mesh` (closed, outward, the capture's frame) under `capture`'s environment map from
     its cameras at `width` x (width * H / W) pixels and compare with the photos. capture: anything
-    with images (V,H,W,3) linear, masks (V,H,W), envmap, cameras and ior (a loaded `Capture`)."""
+    with images (V,H,W,3) linear, masks (V,H,W), envmap, cameras and ior (a loaded `Capture`);
+    `ior`, when given, is rendered instead of the capture's (the IoR estimate's candidates)."""
     photos, masks, factor = photos_at(capture, width)
     height, width = masks.shape[1:]
     cams = capture.cameras.with_resolution(width, height)
     envmap = EnvironmentMap(torch.as_tensor(capture.envmap).float())
-    config = RenderConfig(ior=capture.ior, samples_per_axis=samples_per_axis, threads=threads, device=device,
+    config = RenderConfig(ior=capture.ior if ior is None else ior, samples_per_axis=samples_per_axis, threads=threads, device=device,
                           seed=seed)
     result = render_views(mesh, envmap, cams, config)
     renders = (result.image.cpu() * factor).clamp(0, 1)
