@@ -2,10 +2,10 @@
 # Rebuild lookingglass/weights/points_05views.safetensors (+ .json): the 5-view point net, fine-tuned from the
 # 10-view one's second run in a chain of 7 runs: 5 on up to 1599 procedural scenes, the last two on users' captures.
 #
-# Time on a 2-core CPU: ~7 h from scratch: the 5-view normal net (~3 h, recipes/normals_05views.sh), the
-# 10-view point net's first two runs (~1.8 h, recipes/points_10views.sh up to runs/points10ft), then ~2.3 h of
-# its own (~25 min more 5-view data, ~2 h of point-net runs). Parts already made are skipped.
-# Provenance: lookingglass/weights/points_05views.json (2026-11-24). Usage: bash recipes/points_05views.sh
+# Time on a 2-core CPU: ~8 h from scratch: the 5-view normal net (~3 h, recipes/normals_05views.sh), the
+# 10-view point net's first two runs (~1.8 h, recipes/points_10views.sh up to runs/points10ft), then ~3.3 h of
+# its own (~1 h more 5-view data, ~2.3 h of point-net runs). Parts already made are skipped.
+# Provenance: lookingglass/weights/points_05views.json (2026-11-26). Usage: bash recipes/points_05views.sh
 # (settings: recipes/_lib.sh). Steps are skipped when their weights exist and resume when interrupted.
 #
 # Where this differs from the recorded commands (it cannot be reproduced exactly):
