@@ -26,7 +26,7 @@ import trimesh
 
 from .errors import LookingGlassError
 from .physics.constants import IOR_GLASS
-from .render.compare import rerender
+from .render.compare import photos_at, rerender
 
 IOR_STEP = 0.025  # candidate spacing: the parabola then resolves ~0.005
 ERROR_CLIP = 0.05  # per-channel difference beyond which a pixel counts as unexplained (normalized photos)
@@ -101,8 +101,10 @@ def estimate_ior(mesh: trimesh.Trimesh, capture, ior_range: tuple[float, float],
     start = time.perf_counter()
     candidates = candidate_iors(ior_range)
     sums = np.zeros((len(candidates), capture.num_views))  # per candidate and view: clipped differences
+    prepared = photos_at(capture, width)  # the same photos for every candidate
     for k, ior in enumerate(candidates):
-        shown = rerender(mesh, capture, width, samples_per_axis=1, device=device, seed=seed, ior=float(ior))
+        shown = rerender(mesh, capture, width, samples_per_axis=1, device=device, seed=seed, ior=float(ior),
+                         prepared=prepared)
         region = shown.masks & shown.silhouettes  # the silhouette is the mesh's: the same at any IoR
         clipped = np.minimum(np.abs(shown.renders - shown.photos), ERROR_CLIP).mean(axis=-1)
         sums[k] = (clipped * region).sum(axis=(1, 2))

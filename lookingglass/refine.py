@@ -686,7 +686,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         worse.append(f"{folds} fold-over(s)")
     rerendered = {}
     if capture is not None and config.rerender_width > 0:
-        rerendered = {k: rerender(m, capture, width=config.rerender_width) for k, m in (("input", mesh), ("refined", refined))}
+        prepared = photos_at(capture, config.rerender_width)
+        rerendered = {k: rerender(m, capture, prepared=prepared) for k, m in (("input", mesh), ("refined", refined))}
         rr_in, rr_out = (mean_w(rerendered[k].error) for k in ("input", "refined"))
         if rr_out > rr_in * (1 + RERENDER_TOLERANCE):
             worse.append(f"re-rendering error {rr_in:.4f} -> {rr_out:.4f}")

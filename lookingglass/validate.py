@@ -28,7 +28,7 @@ from .fileio import sha256_file, write_json
 from .metrics import load_mesh, normal_angle_errors, shape_metrics
 from .pipeline import reconstruct
 from .progress import Reporter
-from .render.compare import RERENDER_WIDTH, rerender
+from .render.compare import RERENDER_WIDTH, photos_at, rerender
 from .render.tracer import trace_two_bounce
 from .weights import WEIGHTS_DIR
 
@@ -131,13 +131,15 @@ def evaluate_validation_set(root, out, config: PipelineConfig | None = None, nam
         # how well each mesh explains the photos (render/compare.py); the refine stage has already
         # re-rendered its input (the surface) and its result, at the same seed (and, by default, width)
         views = (refine or {}).get("rerender_error_views")
+        prepared = photos_at(capture, RERENDER_WIDTH)
         if views is not None and config.refine.rerender_width == RERENDER_WIDTH:
             record["surface"]["rerender"] = float(np.mean(views["input"]))
             record["mesh"]["rerender"] = float(np.mean(views["refined" if refine["kept"] == "refined" else "input"]))
         else:
             for kind in ("surface", "mesh") if "surface" in record else ("mesh",):
-                record[kind]["rerender"] = rerender(load_mesh(out / name / f"{kind}.ply"), capture).mean_error
-        record["hull"]["rerender"] = rerender(hull, capture).mean_error
+                record[kind]["rerender"] = rerender(load_mesh(out / name / f"{kind}.ply"), capture,
+                                                    prepared=prepared).mean_error
+        record["hull"]["rerender"] = rerender(hull, capture, prepared=prepared).mean_error
         records.append(record)
     result = {"config": config_to_dict(config), "scenes": records, "families": family_means(records)}
     write_json(out / "validation.json", result)

@@ -14,7 +14,7 @@ import trimesh
 from lookingglass.data.rigs import paper_rig
 from lookingglass.physics.constants import IOR_GLASS
 from lookingglass.physics.environment import EnvironmentMap
-from lookingglass.render.compare import rerender
+from lookingglass.render.compare import photos_at, rerender
 from lookingglass.render.differentiable import mesh_two_bounce
 from lookingglass.render.testshapes import radial_blob
 from lookingglass.render.tracer import RenderConfig, render_views, trace_two_bounce
@@ -79,4 +79,6 @@ def test_rerender_scores_the_shape():
     smaller = trimesh.Trimesh(mesh.vertices * 0.9, mesh.faces, process=False)
     assert same.error.shape == (5,)
     assert same.mean_error < 0.03  # sampling noise only (3x3 vs 2x2 samples per pixel)
-    assert rerender(smaller, capture, width=80).mean_error > 3 * same.mean_error
+    prepared = photos_at(capture, 80)  # several meshes against the same photos: prepared once
+    assert rerender(smaller, capture, prepared=prepared).mean_error > 3 * same.mean_error
+    assert np.array_equal(rerender(mesh, capture, prepared=prepared).error, same.error)

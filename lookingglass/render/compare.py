@@ -56,12 +56,15 @@ def photos_at(capture, width: int) -> tuple[torch.Tensor, torch.Tensor, float]:
 
 
 def rerender(mesh: trimesh.Trimesh, capture, width: int = RERENDER_WIDTH, samples_per_axis: int = 2,
-             threads: int | None = None, device: str = "cpu", seed: int = 0, ior: float | None = None) -> Rerendering:
+             threads: int | None = None, device: str = "cpu", seed: int = 0, ior: float | None = None,
+             prepared: tuple[torch.Tensor, torch.Tensor, float] | None = None) -> Rerendering:
     """Render `mesh` (closed, outward, the capture's frame) under `capture`'s environment map from
     its cameras at `width` x (width * H / W) pixels and compare with the photos. capture: anything
     with images (V,H,W,3) linear, masks (V,H,W), envmap, cameras and ior (a loaded `Capture`);
-    `ior`, when given, is rendered instead of the capture's (the IoR estimate's candidates)."""
-    photos, masks, factor = photos_at(capture, width)
+    `ior`, when given, is rendered instead of the capture's (the IoR estimate's candidates).
+    prepared: `photos_at(capture, width)` when the caller renders several meshes or IoRs against
+    the same photos (it is then not recomputed; `width` is read from it)."""
+    photos, masks, factor = photos_at(capture, width) if prepared is None else prepared
     height, width = masks.shape[1:]
     cams = capture.cameras.with_resolution(width, height)
     envmap = EnvironmentMap(torch.as_tensor(capture.envmap).float())
