@@ -127,39 +127,3 @@ def test_angle_loss_is_the_angle():
     assert 0.05 < float(angle[1] / angle[3]) < 0.07
     with pytest.raises(ConfigError, match="loss"):
         TrainConfig(loss="l1")
-
-
-def test_error_head_learns_a_quantile_and_leaves_the_normals(tiny_dataset, tmp_path):
-    """--error-head-only: a head added to trained normals (their weights start it: --init without a
-    head) learns while every other weight stays bit-exact; the pinball loss it minimizes is lowest
-    at the asked quantile of the true errors; a head-only run without --init or without a head is
-    refused."""
-    import dataclasses
-    from lookingglass.errors import ConfigError
-    from lookingglass.normals.train import error_head_loss
-
-    ds = TransparentSceneDataset(tiny_dataset, "train")
-    train_normals(ds, tmp_path / "normals", _config(epochs=1))
-    init = tmp_path / "normals" / "weights.safetensors"
-    config = _config(epochs=3)
-    config = dataclasses.replace(config, net=dataclasses.replace(config.net, error_head=True), init=str(init),
-                                 error_head_only=True, lr=1e-2)
-    train_normals(ds, tmp_path / "head", config)
-    log = [json.loads(line) for line in (tmp_path / "head" / "metrics.jsonl").read_text().splitlines()]
-    assert log[-1]["loss"] < log[0]["loss"]
-    before, after = load_weights(init).state_dict(), load_weights(tmp_path / "head" / "weights.safetensors").state_dict()
-    assert set(after) - set(before) == {k for k in after if k.startswith("error_head.")} != set()
-    for k in before:
-        torch.testing.assert_close(before[k], after[k], rtol=0, atol=0)
-    # the pinball loss of a constant estimate over errors 1..100 degrees is lowest at the 80th
-    n = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1).expand(1, 3, 1, 100)
-    angles = torch.deg2rad(torch.arange(1.0, 101.0))
-    t = {"n1": torch.stack([angles.sin(), torch.zeros(100), angles.cos()]).view(1, 3, 1, 100),
-         "mask": torch.ones(1, 1, 100, dtype=torch.bool), "n2_valid": torch.ones(1, 1, 100, dtype=torch.bool)}
-    t["n2"] = t["n1"]
-    loss = lambda e: float(error_head_loss(torch.full((1, 2, 1, 100), e), n, n, t, 0.8))  # noqa: E731
-    assert loss(80.0) < min(loss(70.0), loss(90.0))
-    with pytest.raises(ConfigError, match="error-head"):
-        TrainConfig(error_head_only=True, init=str(init))
-    with pytest.raises(ConfigError, match="error-head"):
-        dataclasses.replace(config, init="")

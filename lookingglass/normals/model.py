@@ -46,18 +46,11 @@ class NormalNetConfig:
     # with the last layer zero-initialized, so an untrained net starts at the hull's normals and
     # training spends its steps on corrections (the paper's net regresses normals from scratch).
     residual: bool = setting(False, "Predict a correction to the hull's normals (ours), not the normals.")
-    # Ours: a head that predicts, per pixel, an upper quantile of the net's own N1 and N2 angle
-    # errors, so that later stages can tell where the normals are right (the rendering error
-    # tells that only weakly; docs/results.md). Trained after the normals, on their frozen features.
-    error_head: bool = setting(False, "Also predict each pixel's own N1 and N2 angle error (an upper quantile, "
-                                      "degrees; ours).")
 
     # Settings that change no parameter: weights trained at one view count can start (--init)
     # training at another -- the cost volume samples K neighbours whatever the rig -- and weights
     # trained at one image size at another (the net is fully convolutional).
     FINE_TUNE_FREE: ClassVar[frozenset] = frozenset({"num_views", "cost_volume_theta_deg", "width", "height"})
-    # Weights without the error head may start the training of one (NormalNet.widen_initial_state).
-    FINE_TUNE_WIDEN: ClassVar[frozenset] = frozenset({"error_head"})
 
     @property
     def in_channels(self) -> int:
@@ -80,12 +73,6 @@ def cpu_config(**kw) -> NormalNetConfig:
     base = dict(width=128, height=96, enc_channels=(32, 64, 128), fnet_channels=32, groups=8, residual=True)
     base.update(kw)
     return NormalNetConfig(**base)
-
-
-# The error head's output is ERROR_HEAD_SCALE_DEG * softplus(x), starting at softplus(bias) * scale
-# ~ 10 degrees (about the hull's median error on the training scenes).
-ERROR_HEAD_SCALE_DEG = 5.0
-ERROR_HEAD_BIAS = 1.85
 
 
 def _conv(cin: int, cout: int, k: int, stride: int, groups: int) -> nn.Sequential:
@@ -127,9 +114,6 @@ class NormalNet(nn.Module):
         if cfg.residual:
             nn.init.zeros_(self.decoder[-1].weight)
             nn.init.zeros_(self.decoder[-1].bias)
-        if cfg.error_head:  # reads the decoder's last features, both normals and the hull's
-            self.error_head = nn.Sequential(_conv(c1 + 12, c1, 3, 1, g), nn.Conv2d(c1, 2, 3, 1, 1))
-            nn.init.constant_(self.error_head[-1].bias, ERROR_HEAD_BIAS)
         if cfg.use_cost_volume:
             self.fnet = FNet(cfg)
             k2 = cfg.cost_volume_k ** 2
@@ -152,38 +136,16 @@ class NormalNet(nn.Module):
     def decode(self, latent: Tensor, inputs: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """latent -> unit (n1, n2), each (B, 3, H, W). A residual net adds its output to the hull
         normals, read from `inputs` (the tensor `encode` was given)."""
-        return self.decode_with_error(latent, inputs, with_error=False)[:2]
-
-    def decode_with_error(self, latent: Tensor, inputs: Tensor | None = None,
-                          with_error: bool = True) -> tuple[Tensor, Tensor, Tensor | None]:
-        """`decode`, and with an error head (and `with_error`) the predicted angle errors of n1
-        and n2 (B, 2, H, W), degrees; else None."""
-        features = self.decoder[:-1](latent)
-        out = torch.tanh(self.decoder[-1](features))
+        out = torch.tanh(self.decoder(latent))
         n1, n2 = out[:, :3], out[:, 3:]
-        needs_hull = self.cfg.residual or (with_error and self.cfg.error_head)
-        if needs_hull and inputs is None:
-            raise ValueError("this network decodes relative to the hull normals; pass the inputs")
         if self.cfg.residual:
+            if inputs is None:
+                raise ValueError("a residual network decodes relative to the hull normals; pass the inputs")
             n1, n2 = n1 + inputs[:, HULL_N1_CHANNELS], n2 + inputs[:, HULL_N2_CHANNELS]
-        n1, n2 = unit_channels(n1), unit_channels(n2)
-        if not (with_error and self.cfg.error_head):
-            return n1, n2, None
-        head_in = torch.cat([features, n1, n2, inputs[:, HULL_N1_CHANNELS], inputs[:, HULL_N2_CHANNELS]], 1)
-        return n1, n2, ERROR_HEAD_SCALE_DEG * nn.functional.softplus(self.error_head(head_in))
+        return unit_channels(n1), unit_channels(n2)
 
-    def forward(self, inputs: Tensor, cost_volume: Tensor | None = None,
-                with_error: bool = False) -> tuple[Tensor, ...]:
-        """(n1, n2); with `with_error`, (n1, n2, error) (`decode_with_error`; DDP needs the
-        training step's outputs to come from forward)."""
-        decoded = self.decode_with_error(self.encode(inputs, cost_volume), inputs, with_error)
-        return decoded if with_error else decoded[:2]
-
-    def widen_initial_state(self, state: dict[str, Tensor], saved_config: dict) -> dict[str, Tensor]:
-        """--init weights saved without the error head start its training: the head keeps its
-        fresh initialization, every other weight is loaded."""
-        own = self.state_dict()
-        return {**{k: v for k, v in own.items() if k.startswith("error_head.")}, **state}
+    def forward(self, inputs: Tensor, cost_volume: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        return self.decode(self.encode(inputs, cost_volume), inputs)
 
 
 def unit_channels(x: Tensor, eps: float = 1e-6) -> Tensor:

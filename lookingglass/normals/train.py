@@ -48,19 +48,11 @@ class TrainConfig:
                             "a random initialization.")
     loss: str = setting("l2", "Per-pixel loss: l2 (the paper's squared L2 of the normals) or angle (~ the angle "
                               "itself, so the pixels the hull already has right weigh as much as the wrong ones).")
-    error_head_only: bool = setting(False, "Train only the error head (needs --net.error-head): every other weight "
-                                           "stays as --init gave it; the loss is the quantile (pinball) loss of the "
-                                           "predicted angle errors.")
-    error_quantile: float = setting(0.8, "The quantile of its own angle error the error head learns (higher: a "
-                                         "more cautious estimate).", range=(0, 1))
 
     def __post_init__(self) -> None:
         check_ranges(self)
         if self.loss not in NORMAL_LOSSES:
             raise ConfigError(f"loss must be one of {', '.join(NORMAL_LOSSES)}, got {self.loss!r}")
-        if self.error_head_only and not (self.net.error_head and self.init):
-            raise ConfigError("--error-head-only trains the error head of trained normals: it needs --net.error-head "
-                              "and --init")
 
 
 # The paper's ablations (Table 1): (use_error_map, use_cost_volume).
@@ -112,30 +104,6 @@ def normal_loss(n1: Tensor, n2: Tensor, t: dict, kind: str = "l2") -> Tensor:
     return l1 + l2
 
 
-# A pixel whose true path has no second interface has no usable N2: its N2 error counts as this.
-NO_N2_ERROR_DEG = 90.0
-
-
-def angle_deg(n: Tensor, t: Tensor) -> Tensor:
-    """Angle (degrees) between unit normals n, t (B,3,H,W) -> (B,H,W)."""
-    return torch.rad2deg(torch.acos((n * t).sum(1).clamp(-1, 1)))
-
-
-def error_head_loss(error: Tensor, n1: Tensor, n2: Tensor, t: dict, quantile: float) -> Tensor:
-    """The pinball loss of the predicted errors `error` (B,2,H,W, degrees) against the true angle
-    errors of n1 and n2 over the mask, so `error` learns their `quantile`; a pixel without a valid
-    true N2 has N2 error NO_N2_ERROR_DEG (its N2 must not be trusted)."""
-    with torch.no_grad():
-        e1 = angle_deg(n1, t["n1"])
-        e2 = torch.where(t["n2_valid"], angle_deg(n2, t["n2"]), torch.full_like(e1, NO_N2_ERROR_DEG))
-    m = t["mask"].float()
-    total = 0.0
-    for k, e in enumerate((e1, e2)):
-        r = e - error[:, k]
-        total = total + ((torch.maximum(quantile * r, (quantile - 1) * r) * m).sum() / m.sum().clamp(min=1))
-    return total
-
-
 # ---- the loop -----------------------------------------------------------------------------------
 def train_normals(dataset, run_dir: str | os.PathLike, config: TrainConfig, device: str = "cpu",
                   reporter: Reporter | None = None, max_steps: int | None = None) -> dict:
@@ -157,25 +125,13 @@ def train_normals(dataset, run_dir: str | os.PathLike, config: TrainConfig, devi
                               torch.Generator().manual_seed(config.seed * 1_000_003 + global_step))
         inputs, cost_volume = network_tensors(NormalInputs.from_sample(sample, config.ior, device), config.net)
         t = normal_targets(sample, device)
-        if config.error_head_only:
-            n1, n2, error = model(inputs, cost_volume, with_error=True)
-            return error_head_loss(error, n1, n2, t, config.error_quantile), {
-                "loss_normals": float(normal_loss(n1, n2, t, config.loss))}
         n1, n2 = model(inputs, cost_volume)
         with torch.no_grad():
             loss_hull = float(normal_loss(inputs[:, HULL_N1_CHANNELS], inputs[:, HULL_N2_CHANNELS], t, config.loss))
         return normal_loss(n1, n2, t, config.loss), {"loss_hull": loss_hull}
 
-    def make_net() -> NormalNet:
-        net = NormalNet(config.net)
-        if config.error_head_only:  # Adam skips what needs no gradient; the normals stay as --init gave them
-            for name, p in net.named_parameters():
-                p.requires_grad_(name.startswith("error_head."))
-        return net
-
-    return session.fit(make_net, len(dataset), step,
+    return session.fit(lambda: NormalNet(config.net), len(dataset), step,
                        weights_extra=lambda steps: {"kind": "normals", "steps": steps,
                                                     "views": config.net.num_views,
                                                     "envmap_height": envmap_height},
-                       labels={"loss_normals": "normals"} if config.error_head_only else {"loss_hull": "hull normals"},
-                       max_steps=max_steps)
+                       labels={"loss_hull": "hull normals"}, max_steps=max_steps)
