@@ -1,0 +1,65 @@
+"""The refine stage's normal term with the network's own N1/N2 as the target, but weighted by an oracle
+that knows, from the ground truth, where the prediction is better than the mesh the term starts from.
+Asks: if the normal net could say where it is right (a confidence output), would its normals carry the
+mesh toward issue 25's bar? (the plain term, weighted by the rendering error, makes the mesh worse).
+
+Usage, after `lookingglass validate --data data/val480 --out runs/val480`:
+    .venv/bin/python scripts/experiments/normal_confidence_oracle.py data/val480 runs/val480 duck,key 8 [margin_deg] [better|triangle]
+Per scene: CD, CDN-mean of the refined mesh without the term and with it, the share of pixels trusted.
+"""
+import sys, dataclasses, warnings, types
+import numpy as np, torch
+from pathlib import Path
+import lookingglass.refine as refine_mod
+from lookingglass.capture.scene import load_capture
+from lookingglass.metrics import load_mesh, shape_metrics
+from lookingglass.hull import carve_visual_hull
+from lookingglass.config import PipelineConfig
+from lookingglass.normals.stage import run_normal_stage
+from lookingglass.render.differentiable import mesh_two_bounce
+from lookingglass.render.tracer import trace_two_bounce
+from lookingglass.weights import load_normal_net, shipped_weights
+warnings.simplefilter("ignore")
+root, out = Path(sys.argv[1]), Path(sys.argv[2])
+iterations = int(sys.argv[4])
+margin = float(sys.argv[5]) if len(sys.argv) > 5 else 0.0
+rule = sys.argv[6] if len(sys.argv) > 6 else "better"
+cfg = PipelineConfig()
+angle = lambda a, b: torch.rad2deg(torch.acos((a * b).sum(-1).clamp(-1, 1)))  # noqa: E731
+for name in sys.argv[3].split(","):
+    cap = load_capture(root / name / "scene"); gt = load_mesh(root / name / "ground_truth.ply")
+    hull = carve_visual_hull(cap.masks, cap.cameras, cfg.hull)
+    weights = load_normal_net(shipped_weights(cap.num_views)[0])
+    stage = run_normal_stage(cap, hull, weights, cfg.normals.latent)
+    x, maps = stage.inputs, stage.maps
+    truth = trace_two_bounce(gt, x.cameras, ior=cap.ior)
+    surf = load_mesh(out / name / "surface.ply")
+    share = {}
+
+    def oracle_of(cls, stage, hull, vertices, faces, blur):
+        cams = hull.cameras_normalized(x.cameras.to(device="cpu")).to(dtype=torch.float32)
+        with torch.no_grad():
+            tb = mesh_two_bounce(torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces, dtype=torch.long),
+                                 cams, ior=x.ior)
+        valid = x.mask.cpu() & tb.valid & truth.mask & ~maps.tir
+        # the camera-frame normals of the mesh, the prediction and the truth at the same pixels
+        if rule == "better":  # the prediction closer to the truth than the mesh
+            better1 = angle(maps.n1, truth.normal1) + margin < angle(tb.normal1, truth.normal1)
+            better2 = angle(maps.n2, truth.normal2) + margin < angle(tb.normal2, truth.normal2)
+        else:  # "triangle": what a head predicting its own error e could decide: the mesh is off by at least
+            # angle(mesh, pred) - e, so it is surely worse than the prediction where that exceeds e
+            better1 = angle(tb.normal1, maps.n1) > 2 * angle(maps.n1, truth.normal1) + margin
+            better2 = angle(tb.normal2, maps.n2) > 2 * angle(maps.n2, truth.normal2) + margin
+        weight = (valid & better1 & better2).float()
+        share["trusted"] = float(weight.sum() / valid.sum().clamp(min=1))
+        return cls(cams, maps.n1.float(), maps.n2.float(), weight, float(x.ior))
+
+    rows = []
+    for n in (0, iterations):
+        refine_mod._NormalTarget.of = classmethod(oracle_of)
+        rc = dataclasses.replace(cfg.refine, normal_iterations=n)
+        r = refine_mod.refine_surface(surf, hull, cap.masks, cap.cameras, rc, capture=cap, normals=stage)
+        m = shape_metrics(r.refined, gt)
+        rows.append(f"{n} steps: CD {m['cd']:.2f} CDN-mean {m['cdn_mean']:.2f} kept {r.report['kept']} "
+                    f"iou {min(r.report['silhouette_iou_after']):.3f}")
+    print(name, f"trusted {share.get('trusted', 0):.2f} |", " | ".join(rows), flush=True)
