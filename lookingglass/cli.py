@@ -15,6 +15,7 @@ from .cliconfig import ConfigOptions, apply_config_flags, config_command
 from .errors import Interrupted, LookingGlassError
 from .physics.constants import IOR_GLASS, IOR_MAX, IOR_MIN, PAPER_CAPTURE_FOV_X_DEG, check_ior, check_ior_range
 from .presets import DEFAULT_PRESET, PRESET_NAMES
+from .progress import install_interrupt_hook
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Reconstruct transparent objects from a few photos under a known environment map.")
@@ -635,6 +636,7 @@ def validate(
 
 def main() -> None:
     """Entry point: user errors become one clear line on stderr and exit status 2."""
+    install_interrupt_hook()
     try:
         app()
     except LookingGlassError as exc:

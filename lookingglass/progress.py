@@ -16,10 +16,45 @@ from .errors import Interrupted
 T = TypeVar("T")
 
 
+# A Ctrl-C that arrived while a C library was calling back into Python (ctypes callbacks, e.g. the
+# rtree index trimesh builds for closest points) is printed and dropped by the interpreter as
+# "unraisable"; the hook notes it instead, and the running stage or loop raises it (`raise_pending_interrupt`).
+_interrupt_pending = False
+
+
+def _note_unraisable_interrupt(unraisable) -> None:
+    """sys.unraisablehook: remember a swallowed KeyboardInterrupt quietly; anything else as usual."""
+    global _interrupt_pending
+    if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        _interrupt_pending = True
+        return
+    sys.__unraisablehook__(unraisable)
+
+
+def install_interrupt_hook() -> None:
+    """Make a Ctrl-C that a C callback swallowed stop the command at the end of its stage (the CLI
+    installs it; a library user's interpreter is left alone)."""
+    sys.unraisablehook = _note_unraisable_interrupt
+
+
+def raise_pending_interrupt() -> None:
+    """Raise the KeyboardInterrupt a C callback swallowed, if one did (once)."""
+    global _interrupt_pending
+    if _interrupt_pending:
+        _interrupt_pending = False
+        raise KeyboardInterrupt
+
+
 def peak_memory_mb() -> float:
     """Peak resident memory of this process so far, in MiB (Linux reports ru_maxrss in KiB)."""
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return rss / 1024.0 if sys.platform != "darwin" else rss / 2**20
+
+
+def _stoppable(items: Iterable[T]) -> Iterator[T]:
+    for item in items:
+        raise_pending_interrupt()
+        yield item
 
 
 class Reporter:
@@ -45,6 +80,7 @@ class Reporter:
         try:
             with self.console.status(f"{description or name} ..."):
                 yield record
+                raise_pending_interrupt()
         except KeyboardInterrupt as exc:
             if isinstance(exc, Interrupted):
                 raise
@@ -55,11 +91,14 @@ class Reporter:
         self.console.print(f"[green]✓[/green] {description or name} [dim]({record['seconds']:.2f} s)[/dim]")
 
     def track(self, items: Iterable[T], total: int | None = None, description: str = "") -> Iterator[T]:
-        """Iterate with a progress bar (with counts and ETA)."""
+        """Iterate with a progress bar (with counts and ETA); a swallowed Ctrl-C
+        (`raise_pending_interrupt`) stops the loop at the next item."""
+        if total is None and not self.quiet:
+            total = len(items)  # type: ignore[arg-type]
+        items = _stoppable(items)
         if self.quiet:
             yield from items
             return
-        total = total if total is not None else len(items)  # type: ignore[arg-type]
         if not self.console.is_terminal:  # a log file or a batch job: plain lines, not a live bar
             yield from self._track_lines(items, total, description)
             return

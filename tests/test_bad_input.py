@@ -528,3 +528,40 @@ def test_sfm_too_few_registered_photos(tmp_path, capfd):
     code, err = run_cli(capfd, "sfm", "--images", tmp_path / "photos", "--out", tmp_path / "out", "--quiet")
     assert_clean_failure(code, err, str(tmp_path / "out"), "photos")
     assert not (tmp_path / "out" / "model").exists() and not (tmp_path / "out" / "sfm.json").exists()
+
+
+def test_ctrl_c_swallowed_by_a_c_callback_still_stops_the_stage(monkeypatch):
+    """A KeyboardInterrupt raised in a ctypes callback (rtree's index building calls back into
+    Python while trimesh finds closest points) never reaches the caller: the interpreter prints it
+    as unraisable and the C call returns. With the CLI's hook the stage that was running stops at
+    its end with the same Interrupted as a plain Ctrl-C, and nothing is printed; a loop stops at
+    its next item. Without the hook the stage would finish normally (the bug CI once met)."""
+    import ctypes
+
+    from lookingglass.errors import Interrupted
+    from lookingglass.progress import Reporter, install_interrupt_hook
+
+    monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)  # restored after the test
+    install_interrupt_hook()
+    compare = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p)
+
+    def interrupted_compare(a, b):
+        raise KeyboardInterrupt
+
+    def sort_in_c():  # libc's qsort calls the comparison back: the interrupt is swallowed there
+        values = (ctypes.c_int * 3)(3, 1, 2)
+        ctypes.CDLL(None).qsort(values, 3, ctypes.sizeof(ctypes.c_int), compare(interrupted_compare))
+
+    reached_the_end = False
+    with pytest.raises(Interrupted, match="in the surface stage"):
+        with Reporter(quiet=True).stage("surface"):
+            sort_in_c()
+            reached_the_end = True
+    assert reached_the_end  # the C call did return: the stage is stopped at its end
+    seen = []
+    with pytest.raises(KeyboardInterrupt):
+        for i in Reporter(quiet=True).track(range(5)):
+            seen.append(i)
+            if i == 1:
+                sort_in_c()
+    assert seen == [0, 1]
