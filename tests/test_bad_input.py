@@ -387,8 +387,11 @@ def test_ctrl_c_says_what_stopped_and_leaves_the_old_result(base, tmp_path):
         pytest.skip("no weights ship in this build")
     out = tmp_path / "out"
     before = old_result(out)
+    # SIG_DFL: a test run started in the background of a shell without job control (`bash .ci/run &`) ignores
+    # SIGINT, and children inherit that; the command under test must start as from a terminal
     proc = subprocess.Popen([sys.executable, "-m", "lookingglass.cli", "reconstruct", base / "scene", "--out", out,
-                             "--force", "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                             "--force", "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 120
         while not glob.glob(str(tmp_path / ".out.partial-*" / "visual_hull.ply")):
