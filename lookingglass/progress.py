@@ -17,7 +17,7 @@ T = TypeVar("T")
 
 
 # A Ctrl-C that arrived while a C library was calling back into Python (ctypes callbacks, e.g. the
-# rtree index trimesh builds for closest points) is printed and dropped by the interpreter as
+# rtree index trimesh builds in the surface stage) is printed and dropped by the interpreter as
 # "unraisable"; the hook notes it instead, and the running stage or loop raises it (`raise_pending_interrupt`).
 _interrupt_pending = False
 

@@ -535,10 +535,10 @@ def test_sfm_too_few_registered_photos(tmp_path, capfd):
 
 def test_ctrl_c_swallowed_by_a_c_callback_still_stops_the_stage(monkeypatch):
     """A KeyboardInterrupt raised in a ctypes callback (rtree's index building calls back into
-    Python while trimesh finds closest points) never reaches the caller: the interpreter prints it
-    as unraisable and the C call returns. With the CLI's hook the stage that was running stops at
-    its end with the same Interrupted as a plain Ctrl-C, and nothing is printed; a loop stops at
-    its next item. Without the hook the stage would finish normally (the bug CI once met)."""
+    Python when trimesh builds one in the surface stage) never reaches the caller: the interpreter
+    prints it as unraisable and the C call returns. With the CLI's hook the stage that was running
+    stops at its end with the same Interrupted as a plain Ctrl-C, and nothing is printed; a loop
+    stops at its next item. Without the hook the stage finished normally and `reconstruct` exited 0."""
     import ctypes
 
     from lookingglass.errors import Interrupted
