@@ -145,7 +145,11 @@ class RefineConfig:
     normal_step: float = setting(0.5, "Largest normal-term step, in edge lengths (halved while the loss does not fall).",
                                  range=(0, None))
     normal_evidence_blur: int = setting(5, "Box filter (pixels, odd) over both rendering-error maps before they are "
-                                           "compared: single pixels are noisy evidence.", range=(1, 31))
+                                           "compared: single pixels are noisy evidence (nets without a gain head).",
+                                        range=(1, 31))
+    normal_trust_gain: float = setting(1.0, "With a normal net that has a gain head: a pixel pulls where the predicted "
+                                            "normals are closer to the truth than the hull's by more than this, in "
+                                            "degrees, at both hits (the head's estimate).", range=(None, None))
     keep_tolerance: float = setting(0.002, "The refined mesh is kept unless a measure is worse than the input's by "
                                            "more than this (IoU; relative for the roughness).", range=(0, None))
 
@@ -467,12 +471,15 @@ class _PhotoTarget:
 class _NormalTarget:
     """The normal network's prediction as a target for the mesh's own two-bounce normals, at the
     network's resolution in the normalized frame: cams, n1, n2 (V, h, w, 3) camera frame, and the
-    per-pixel weight: how much better the prediction explains the photo than the mesh it starts
-    from does, (e_mesh - e_pred) / (e_mesh + e_pred) clipped to [0, 1] on the box-filtered
-    rendering errors of both (the same rendering layer, photos and environment map), 0 where the
-    prediction is totally reflected or the mesh's two-bounce path does not exist. A prediction the
-    photo does not back pulls nothing (issue 25: on shapes unlike the training set the predicted N1
-    is often worse than the mesh's)."""
+    per-pixel weight, 0 where the prediction is totally reflected or the mesh's two-bounce path
+    does not exist, and else:
+    - a net with a gain head (how much closer to the truth its normals are than the hull's, per
+      pixel and hit): 1 where that exceeds `trust_gain` degrees at both hits, 0 elsewhere;
+    - a net without: how much better the prediction explains the photo than the mesh it starts
+      from does, (e_mesh - e_pred) / (e_mesh + e_pred) clipped to [0, 1] on the box-filtered
+      rendering errors of both (the same rendering layer, photos and environment map).
+    A prediction nothing backs pulls nothing (issue 25: on shapes unlike the training set the
+    predicted N1 is often worse than the mesh's)."""
 
     cams: Cameras
     n1: torch.Tensor
@@ -481,13 +488,19 @@ class _NormalTarget:
     ior: float
 
     @classmethod
-    def of(cls, stage, hull: VisualHull, vertices: np.ndarray, faces: np.ndarray, blur: int) -> "_NormalTarget":
+    def of(cls, stage, hull: VisualHull, vertices: np.ndarray, faces: np.ndarray, blur: int,
+           trust_gain: float = 1.0) -> "_NormalTarget":
         inputs, maps = stage.inputs, stage.maps.to("cpu")
         cams = hull.cameras_normalized(inputs.cameras.to(device="cpu")).to(dtype=torch.float32)
         with torch.no_grad():
             tb = mesh_two_bounce(torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces, dtype=torch.long),
                                  cams, ior=inputs.ior)
             mask = inputs.mask.cpu()
+            if maps.predicted_gain is not None:
+                # the head compares the prediction with the hull, not with this mesh: the mesh moved
+                # off the hull by PNet's offsets, which rarely turn its normals by as much as the gains
+                trusted = mask & tb.valid & ~maps.tir & (maps.predicted_gain > trust_gain).all(-1)
+                return cls(cams, maps.n1.float(), maps.n2.float(), trusted.float(), float(inputs.ior))
             e_mesh = prediction_error_maps(inputs.envmap.to("cpu"), tb.normal1, tb.normal2, cams, inputs.image.cpu(),
                                            mask, inputs.ior)[0]
             smooth = lambda e: torch.nn.functional.avg_pool2d(  # noqa: E731
@@ -653,7 +666,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     normal_losses: list[float] = []
     if config.normal_iterations and normals is not None:
         t_normals = time.perf_counter()
-        target = _NormalTarget.of(normals, hull, x, faces, config.normal_evidence_blur)
+        target = _NormalTarget.of(normals, hull, x, faces, config.normal_evidence_blur, config.normal_trust_gain)
         normal_losses = descend(target, config.normal_step, config.normal_iterations)
         timings["normals"] = time.perf_counter() - t_normals
         normal_weight_mean = float(target.weight.sum() / max(float((target.weight > 0).sum()), 1))

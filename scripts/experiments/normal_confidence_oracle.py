@@ -4,7 +4,7 @@ Asks: if the normal net could say where it is right (a confidence output), would
 mesh toward issue 25's bar? (the plain term, weighted by the rendering error, makes the mesh worse).
 
 Usage, after `lookingglass validate --data data/val480 --out runs/val480`:
-    .venv/bin/python scripts/experiments/normal_confidence_oracle.py data/val480 runs/val480 duck,key 8 [margin_deg] [better|triangle]
+    .venv/bin/python scripts/experiments/normal_confidence_oracle.py data/val480 runs/val480 duck,key 8 [margin_deg] [better|hull|triangle]
 Per scene: CD, CDN-mean of the refined mesh without the term and with it, the share of pixels trusted.
 """
 import sys, dataclasses, warnings, types
@@ -46,6 +46,9 @@ for name in sys.argv[3].split(","):
         if rule == "better":  # the prediction closer to the truth than the mesh
             better1 = angle(maps.n1, truth.normal1) + margin < angle(tb.normal1, truth.normal1)
             better2 = angle(maps.n2, truth.normal2) + margin < angle(tb.normal2, truth.normal2)
+        elif rule == "hull":  # the prediction closer to the truth than the hull (what a gain head learns)
+            better1 = angle(maps.n1, truth.normal1) + margin < angle(x.vh_n1, truth.normal1)
+            better2 = (angle(maps.n2, truth.normal2) + margin < angle(x.vh_n2, truth.normal2)) & x.vh_valid
         else:  # "triangle": what a head predicting its own error e could decide: the mesh is off by at least
             # angle(mesh, pred) - e, so it is surely worse than the prediction where that exceeds e
             better1 = angle(tb.normal1, maps.n1) > 2 * angle(maps.n1, truth.normal1) + margin

@@ -4,8 +4,10 @@ view's silhouette IoU, whether `reconstruct`'s keep check keeps the refined mesh
 
 Usage, after `lookingglass validate --data DATA --out RUNS`:
     .venv/bin/python scripts/experiments/refine_val_variants.py DATA RUNS \\
-        "default" "iterations=12" "iterations=24,silhouette_views=0" [--shapes duck,key]
-Each variant is "default" or comma-separated RefineConfig fields (key=value) over the defaults.
+        "default" "iterations=12" "iterations=24,silhouette_views=0" [--shapes duck,key] [--normals W]
+Each variant is "default" or comma-separated RefineConfig fields (key=value) over the defaults. With
+--normals W (a normal net's weights.safetensors, or "shipped"), the normal stage runs as `reconstruct` runs
+it (default latent steps) and the refine stage gets its maps (its normal term acts where normal_iterations > 0).
 """
 import argparse
 import json
@@ -21,7 +23,9 @@ from lookingglass.config import PipelineConfig
 from lookingglass.configio import config_from_dict
 from lookingglass.hull import carve_visual_hull
 from lookingglass.metrics import load_mesh, shape_metrics
+from lookingglass.normals.stage import run_normal_stage
 from lookingglass.refine import RefineConfig, refine_surface
+from lookingglass.weights import load_normal_net, shipped_weights
 
 
 def variant(text: str) -> RefineConfig:
@@ -38,23 +42,30 @@ def main() -> None:
     parser.add_argument("runs")
     parser.add_argument("variants", nargs="+")
     parser.add_argument("--shapes", default="")
+    parser.add_argument("--normals", default="")
     args = parser.parse_args()
     warnings.simplefilter("ignore")
     data, runs = Path(args.data), Path(args.runs)
     names = args.shapes.split(",") if args.shapes else list(json.loads((data / "index.json").read_text())["shapes"])
-    hull_config = PipelineConfig().hull
+    config = PipelineConfig()
+    hull_config = config.hull
     rows = {v: [] for v in args.variants}
     for name in names:
         capture = load_capture(data / name / "scene")
         gt = load_mesh(data / name / "ground_truth.ply")
         hull = carve_visual_hull(capture.masks, capture.cameras.to(dtype=torch.float32), hull_config)
         surface = load_mesh(runs / name / "surface.ply")
+        stage = None
+        if args.normals:
+            path = shipped_weights(capture.num_views)[0] if args.normals == "shipped" else args.normals
+            stage = run_normal_stage(capture, hull, load_normal_net(path), config.normals.latent)
         h, s = shape_metrics(hull.mesh, gt), shape_metrics(surface, gt)
         print(f"{name:15s} hull    CD {h['cd']:6.2f} CDN {h['cdn_mean']:6.2f} metro {h['metro']:6.2f} | "
               f"surface CD {s['cd']:6.2f} CDN {s['cdn_mean']:6.2f}", flush=True)
         for v in args.variants:
             t = time.perf_counter()
-            result = refine_surface(surface, hull, capture.masks, capture.cameras, variant(v), capture=capture)
+            result = refine_surface(surface, hull, capture.masks, capture.cameras, variant(v), capture=capture,
+                                    normals=stage)
             seconds = time.perf_counter() - t
             m = shape_metrics(result.refined, gt)
             kept = result.report["kept"] == "refined"
@@ -62,7 +73,7 @@ def main() -> None:
             rr = result.report.get("rerender_error", [np.nan, np.nan])[1]
             rows[v].append((h["cd"], h["cdn_mean"], m["cd"], m["cdn_mean"], m["metro"], iou, kept, seconds, rr))
             print(f"{name:15s} {v:40s} CD {m['cd']:6.2f} CDN {m['cdn_mean']:6.2f} metro {m['metro']:6.2f} "
-                  f"IoU {iou:.4f} bias {result.report['terms_after'].get('silhouette_bias_px', np.nan):+.3f}px rr {rr:.4f} {'kept' if kept else 'REJECTED ' + result.report.get('kept_why', '')} "
+                  f"IoU {iou:.4f} trusted {result.report.get('normal_evidence', {}).get('pixels_share', 0):.3f} bias {result.report['terms_after'].get('silhouette_bias_px', np.nan):+.3f}px rr {rr:.4f} {'kept' if kept else 'REJECTED ' + result.report.get('kept_why', '')} "
                   f"{seconds:.1f}s", flush=True)
     # ratios of the means, as docs/results.md and issue 25's bars use them
     print("\nmeans: CD/hull CDN/hull CD CDN Metro | worst IoU | kept | seconds | rerender")
