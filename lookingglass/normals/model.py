@@ -127,8 +127,8 @@ class NormalNet(nn.Module):
         if cfg.residual:
             nn.init.zeros_(self.decoder[-1].weight)
             nn.init.zeros_(self.decoder[-1].bias)
-        if cfg.gain_head:  # reads the decoder's last features, both normals and the hull's
-            self.gain_head = nn.Sequential(_conv(c1 + 12, c1, 3, 1, g), nn.Conv2d(c1, 2, 3, 1, 1))
+        if cfg.gain_head:  # reads the decoder's last features, both normals, the hull's, and how far apart they are
+            self.gain_head = nn.Sequential(_conv(c1 + 14, c1, 3, 1, g), nn.Conv2d(c1, 2, 3, 1, 1))
             nn.init.zeros_(self.gain_head[-1].bias)
         if cfg.use_cost_volume:
             self.fnet = FNet(cfg)
@@ -170,7 +170,10 @@ class NormalNet(nn.Module):
         n1, n2 = unit_channels(n1), unit_channels(n2)
         if not (with_gain and self.cfg.gain_head):
             return n1, n2, None
-        head_in = torch.cat([features, n1, n2, inputs[:, HULL_N1_CHANNELS], inputs[:, HULL_N2_CHANNELS]], 1)
+        hull1, hull2 = inputs[:, HULL_N1_CHANNELS], inputs[:, HULL_N2_CHANNELS]
+        # the cosines between prediction and hull, which a 3x3 convolution would only approximate
+        agreement = torch.cat([(n1 * hull1).sum(1, keepdim=True), (n2 * hull2).sum(1, keepdim=True)], 1)
+        head_in = torch.cat([features, n1, n2, hull1, hull2, agreement], 1)
         return n1, n2, GAIN_HEAD_SCALE_DEG * self.gain_head(head_in)
 
     def forward(self, inputs: Tensor, cost_volume: Tensor | None = None,
