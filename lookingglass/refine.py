@@ -147,6 +147,9 @@ class RefineConfig:
     normal_evidence_blur: int = setting(5, "Box filter (pixels, odd) over both rendering-error maps before they are "
                                            "compared: single pixels are noisy evidence (nets without a gain head).",
                                         range=(1, 31))
+    normal_full_share: float = setting(0.0, "The share of the object's pixels the prediction must be trusted on for the "
+                                            "normal term's full step; fewer scale it down in proportion (0: always the "
+                                            "full step).", range=(0, 1))
     normal_trust_gain: float = setting(1.0, "With a normal net that has a gain head: a pixel pulls where the predicted "
                                             "normals are closer to the truth than the hull's by more than this, in "
                                             "degrees, at both hits (the head's estimate).", range=(None, None))
@@ -497,9 +500,13 @@ class _NormalTarget:
                                  cams, ior=inputs.ior)
             mask = inputs.mask.cpu()
             if maps.predicted_gain is not None:
-                # the head compares the prediction with the hull, not with this mesh: the mesh moved
-                # off the hull by PNet's offsets, which rarely turn its normals by as much as the gains
-                trusted = mask & tb.valid & ~maps.tir & (maps.predicted_gain > trust_gain).all(-1)
+                # the head compares the prediction with the hull; this mesh is closer to the truth than
+                # the hull by at most the angle between their normals, so the prediction's gain over the
+                # mesh is at least the head's gain minus that angle (the triangle inequality on angles)
+                trusted = mask & tb.valid & ~maps.tir
+                for k, (mesh_n, hull_n) in enumerate(((tb.normal1, inputs.vh_n1), (tb.normal2, inputs.vh_n2))):
+                    moved = torch.rad2deg(torch.acos((mesh_n * hull_n.cpu()).sum(-1).clamp(-1, 1)))
+                    trusted &= maps.predicted_gain[..., k] - moved > trust_gain
                 return cls(cams, maps.n1.float(), maps.n2.float(), trusted.float(), float(inputs.ior))
             e_mesh = prediction_error_maps(inputs.envmap.to("cpu"), tb.normal1, tb.normal2, cams, inputs.image.cpu(),
                                            mask, inputs.ior)[0]
@@ -667,7 +674,9 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     if config.normal_iterations and normals is not None:
         t_normals = time.perf_counter()
         target = _NormalTarget.of(normals, hull, x, faces, config.normal_evidence_blur, config.normal_trust_gain)
-        normal_losses = descend(target, config.normal_step, config.normal_iterations)
+        trusted_share = float((target.weight > 0).sum() / max(float(normals.inputs.mask.sum()), 1))
+        step_scale = min(1.0, trusted_share / config.normal_full_share) if config.normal_full_share > 0 else 1.0
+        normal_losses = descend(target, config.normal_step * step_scale, config.normal_iterations)
         timings["normals"] = time.perf_counter() - t_normals
         normal_weight_mean = float(target.weight.sum() / max(float((target.weight > 0).sum()), 1))
         normal_weight_share = float((target.weight > 0).float().mean())
@@ -720,7 +729,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
            if rerendered else {}),
         **({"photometric_loss": [round(v, 4) for v in photo_losses]} if photo_losses else {}),
         **({"normal_loss": [round(v, 4) for v in normal_losses], "normal_evidence": {
-            "pixels_share": round(normal_weight_share, 4), "mean_weight": round(normal_weight_mean, 4)}}
+            "pixels_share": round(normal_weight_share, 4), "mean_weight": round(normal_weight_mean, 4),
+            "object_share": round(trusted_share, 4), "step_scale": round(step_scale, 4)}}
            if normal_losses else {}),
         "down_weighted_views": [int(v) for v in low],
         "vertices": int(len(x0)), "faces": int(len(faces)), "iterations": config.iterations,
