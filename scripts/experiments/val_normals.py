@@ -2,7 +2,7 @@
 (docs/results.md, issue 27): per scene, and the means with their ratio to the hull's.
 
 Usage, after `lookingglass validate --data data/val480 --out runs/val480` (which leaves each scene's hull):
-    .venv/bin/python scripts/experiments/val_normals.py data/val480 runs/val480 A.safetensors,B.safetensors [latent]
+    .venv/bin/python scripts/experiments/val_normals.py data/val480 runs/val480 A.safetensors,B.safetensors [latent] [input=mesh.ply]
 The nets see what `reconstruct` feeds them (`NormalInputs.from_capture`) at their own image size and map height;
 "W@256x192" runs net W at another size. Each net's figures are beside the hull's at the same size (the hull's
 N1 median depends on the pixel grid it is sampled on). Without `latent`, no latent optimization.
@@ -28,11 +28,13 @@ def parse(spec: str):
 
 root, out = Path(sys.argv[1]), Path(sys.argv[2])
 nets = [parse(s) for s in sys.argv[3].split(",")]
-latent = LatentOptConfig() if len(sys.argv) > 4 else None
+latent = LatentOptConfig() if len(sys.argv) > 4 and sys.argv[4] == "latent" else None
+# the mesh the nets are fed in place of the hull: "mesh.ply" asks how the net treats the refined mesh
+INPUT_MESH = next((a.split("=", 1)[1] for a in sys.argv[4:] if a.startswith("input=")), "visual_hull.ply")
 rows = {}
 for name in sorted(json.loads((root / "index.json").read_text())["shapes"]):
     cap = load_capture(root / name / "scene"); gt = load_mesh(root / name / "ground_truth.ply")
-    hull = load_mesh(out / name / "visual_hull.ply")
+    hull = load_mesh(out / name / INPUT_MESH)
     row, cache = {}, {}
     for label, nw, W, H in nets:
         key = (W, H, nw.envmap_height)
