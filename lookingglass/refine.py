@@ -145,7 +145,14 @@ class RefineConfig:
     normal_step: float = setting(0.5, "Largest normal-term step, in edge lengths (halved while the loss does not fall).",
                                  range=(0, None))
     normal_evidence_blur: int = setting(5, "Box filter (pixels, odd) over both rendering-error maps before they are "
-                                           "compared: single pixels are noisy evidence.", range=(1, 31))
+                                           "compared: single pixels are noisy evidence (nets without a gain head).",
+                                        range=(1, 31))
+    normal_full_share: float = setting(0.0, "The share of the object's pixels the prediction must be trusted on for the "
+                                            "normal term's full step; fewer scale it down in proportion (0: always the "
+                                            "full step).", range=(0, 1))
+    normal_trust_gain: float = setting(1.0, "With a normal net that has a gain head: a pixel pulls where the predicted "
+                                            "normals are closer to the truth than the hull's by more than this, in "
+                                            "degrees, at both hits (the head's estimate).", range=(None, None))
     keep_tolerance: float = setting(0.002, "The refined mesh is kept unless a measure is worse than the input's by "
                                            "more than this (IoU; relative for the roughness).", range=(0, None))
 
@@ -467,12 +474,15 @@ class _PhotoTarget:
 class _NormalTarget:
     """The normal network's prediction as a target for the mesh's own two-bounce normals, at the
     network's resolution in the normalized frame: cams, n1, n2 (V, h, w, 3) camera frame, and the
-    per-pixel weight: how much better the prediction explains the photo than the mesh it starts
-    from does, (e_mesh - e_pred) / (e_mesh + e_pred) clipped to [0, 1] on the box-filtered
-    rendering errors of both (the same rendering layer, photos and environment map), 0 where the
-    prediction is totally reflected or the mesh's two-bounce path does not exist. A prediction the
-    photo does not back pulls nothing (issue 25: on shapes unlike the training set the predicted N1
-    is often worse than the mesh's)."""
+    per-pixel weight, 0 where the prediction is totally reflected or the mesh's two-bounce path
+    does not exist, and else:
+    - a net with a gain head (how much closer to the truth its normals are than the hull's, per
+      pixel and hit): 1 where that exceeds `trust_gain` degrees at both hits, 0 elsewhere;
+    - a net without: how much better the prediction explains the photo than the mesh it starts
+      from does, (e_mesh - e_pred) / (e_mesh + e_pred) clipped to [0, 1] on the box-filtered
+      rendering errors of both (the same rendering layer, photos and environment map).
+    A prediction nothing backs pulls nothing (issue 25: on shapes unlike the training set the
+    predicted N1 is often worse than the mesh's)."""
 
     cams: Cameras
     n1: torch.Tensor
@@ -481,13 +491,23 @@ class _NormalTarget:
     ior: float
 
     @classmethod
-    def of(cls, stage, hull: VisualHull, vertices: np.ndarray, faces: np.ndarray, blur: int) -> "_NormalTarget":
+    def of(cls, stage, hull: VisualHull, vertices: np.ndarray, faces: np.ndarray, blur: int,
+           trust_gain: float = 1.0) -> "_NormalTarget":
         inputs, maps = stage.inputs, stage.maps.to("cpu")
         cams = hull.cameras_normalized(inputs.cameras.to(device="cpu")).to(dtype=torch.float32)
         with torch.no_grad():
             tb = mesh_two_bounce(torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces, dtype=torch.long),
                                  cams, ior=inputs.ior)
             mask = inputs.mask.cpu()
+            if maps.predicted_gain is not None:
+                # the head compares the prediction with the hull; this mesh is closer to the truth than
+                # the hull by at most the angle between their normals, so the prediction's gain over the
+                # mesh is at least the head's gain minus that angle (the triangle inequality on angles)
+                trusted = mask & tb.valid & ~maps.tir
+                for k, (mesh_n, hull_n) in enumerate(((tb.normal1, inputs.vh_n1), (tb.normal2, inputs.vh_n2))):
+                    moved = torch.rad2deg(torch.acos((mesh_n * hull_n.cpu()).sum(-1).clamp(-1, 1)))
+                    trusted &= maps.predicted_gain[..., k] - moved > trust_gain
+                return cls(cams, maps.n1.float(), maps.n2.float(), trusted.float(), float(inputs.ior))
             e_mesh = prediction_error_maps(inputs.envmap.to("cpu"), tb.normal1, tb.normal2, cams, inputs.image.cpu(),
                                            mask, inputs.ior)[0]
             smooth = lambda e: torch.nn.functional.avg_pool2d(  # noqa: E731
@@ -653,8 +673,10 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     normal_losses: list[float] = []
     if config.normal_iterations and normals is not None:
         t_normals = time.perf_counter()
-        target = _NormalTarget.of(normals, hull, x, faces, config.normal_evidence_blur)
-        normal_losses = descend(target, config.normal_step, config.normal_iterations)
+        target = _NormalTarget.of(normals, hull, x, faces, config.normal_evidence_blur, config.normal_trust_gain)
+        trusted_share = float((target.weight > 0).sum() / max(float(normals.inputs.mask.sum()), 1))
+        step_scale = min(1.0, trusted_share / config.normal_full_share) if config.normal_full_share > 0 else 1.0
+        normal_losses = descend(target, config.normal_step * step_scale, config.normal_iterations)
         timings["normals"] = time.perf_counter() - t_normals
         normal_weight_mean = float(target.weight.sum() / max(float((target.weight > 0).sum()), 1))
         normal_weight_share = float((target.weight > 0).float().mean())
@@ -707,7 +729,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
            if rerendered else {}),
         **({"photometric_loss": [round(v, 4) for v in photo_losses]} if photo_losses else {}),
         **({"normal_loss": [round(v, 4) for v in normal_losses], "normal_evidence": {
-            "pixels_share": round(normal_weight_share, 4), "mean_weight": round(normal_weight_mean, 4)}}
+            "pixels_share": round(normal_weight_share, 4), "mean_weight": round(normal_weight_mean, 4),
+            "object_share": round(trusted_share, 4), "step_scale": round(step_scale, 4)}}
            if normal_losses else {}),
         "down_weighted_views": [int(v) for v in low],
         "vertices": int(len(x0)), "faces": int(len(faces)), "iterations": config.iterations,

@@ -29,7 +29,7 @@ def test_latent_optimization_lowers_render_error_and_keeps_weights(residual):
     hull1 = torch.nn.functional.normalize(n1 + tilt, dim=-1)
     hull2 = torch.nn.functional.normalize(n2 + tilt, dim=-1)
     x = network_inputs(image, mask, hull1, hull2, torch.zeros_like(image), torch.zeros_like(mask))
-    _, _, history = optimize_latent(net, x, None, env, image, mask, cams,
+    _, _, history, _ = optimize_latent(net, x, None, env, image, mask, cams,
                                     LatentOptConfig(iterations_n2=20, iterations_both=80, lr=2e-2))
     # An untrained decoder spans few shapes; a trained one moves further (docs/history.md).
     assert history[-1] < 0.85 * history[0], history[::10]

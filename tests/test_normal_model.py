@@ -127,3 +127,22 @@ def test_unit_channels_is_normalize_with_its_gradient():
     (g_ref,) = torch.autograd.grad((ref * weights).sum(), x)
     assert torch.isfinite(g_ours).all()
     assert torch.allclose(g_ours, g_ref, atol=1e-8)
+
+
+def test_gain_head_is_an_extra_output():
+    """A net with a gain head decodes the same normals as its weights without the head (which
+    load into it, the head fresh) and adds per-pixel gains for n1 and n2 (degrees)."""
+    torch.manual_seed(0)
+    plain = NormalNet(cpu_config(width=64, height=48, enc_channels=(16, 32, 64), use_cost_volume=False)).eval()
+    headed = NormalNet(cpu_config(width=64, height=48, enc_channels=(16, 32, 64), use_cost_volume=False,
+                            gain_head=True)).eval()
+    headed.load_state_dict(headed.widen_initial_state(plain.state_dict(), {}))
+    x = torch.randn(2, 15, 48, 64)
+    with torch.no_grad():
+        n1, n2 = plain(x)
+        h1, h2 = headed(x)
+        e1, e2, gain = headed(x, with_gain=True)
+        assert plain(x, with_gain=True)[2] is None
+    for a, b in ((n1, h1), (n2, h2), (n1, e1), (n2, e2)):
+        torch.testing.assert_close(a, b)
+    assert gain.shape == (2, 2, 48, 64) and bool(torch.isfinite(gain).all()) and float(gain.std()) > 0

@@ -197,13 +197,16 @@ def capture(scene):
                            cameras=cameras, ior=IOR_GLASS)
 
 
-def normal_stage(capture, hull, n1, n2, error) -> SimpleNamespace:
+def normal_stage(capture, hull, n1, n2, error, predicted_gain=None) -> SimpleNamespace:
     """What the normal stage hands the refine stage (`NormalStageResult`'s inputs and maps), at
-    80x60, with the given normal maps (a function of the inputs' cameras) and error maps."""
+    80x60, with the given normal maps (a function of the inputs' cameras), rendering-error maps
+    and, when given, the gain head's estimate (degrees, the same at every pixel and hit)."""
     x = NormalInputs.from_capture(capture.images, capture.masks, capture.envmap, capture.cameras, capture.ior,
                                   hull.mesh, 80, 60, 32)
     n1, n2 = n1(x.cameras), n2(x.cameras)
-    maps = NormalMaps(x.cameras, n1, n2, torch.full(x.mask.shape, float(error)), torch.zeros_like(x.mask), x.mask)
+    head = None if predicted_gain is None else torch.full((*x.mask.shape, 2), float(predicted_gain))
+    maps = NormalMaps(x.cameras, n1, n2, torch.full(x.mask.shape, float(error)), torch.zeros_like(x.mask), x.mask,
+                      predicted_gain=head)
     return SimpleNamespace(inputs=x, maps=maps)
 
 
@@ -228,6 +231,28 @@ def test_the_normal_term_follows_trusted_normals_and_ignores_untrusted_ones(scen
     assert min(result.report["silhouette_iou_after"]) > 0.97
     untrusted = normal_stage(capture, hull, lambda c: truth(c).normal1, lambda c: truth(c).normal2, 10.0)
     result = refine_surface(start, hull, masks, cameras, config, normals=untrusted)
+    assert result.report["normal_evidence"]["pixels_share"] == 0
+    np.testing.assert_allclose(result.refined.vertices, base.vertices, atol=1e-9)
+
+
+def test_the_normal_term_trusts_what_the_gain_head_vouches_for(scene, capture):
+    """A net with a gain head: with the true normals and a predicted gain of 5 degrees (above the
+    1-degree bar) every pixel pulls and the term removes the ridges as above; with a predicted gain
+    of -5 degrees (the hull's normals said to be the better) nothing is trusted and nothing moves,
+    whatever the rendering error says (here 0: it is not read)."""
+    gt, cameras, masks, hull = scene
+    start = lumpy_shrunken(gt)
+    base_config = dataclasses.replace(CONFIG, rerender_width=0)
+    base = refine_surface(start, hull, masks, cameras, base_config).refined
+    truth = lambda c: trace_two_bounce(gt, c, ior=IOR_GLASS)  # noqa: E731
+    config = dataclasses.replace(base_config, normal_iterations=16)
+    sure = normal_stage(capture, hull, lambda c: truth(c).normal1, lambda c: truth(c).normal2, 0.0, 5.0)
+    result = refine_surface(start, hull, masks, cameras, config, normals=sure)
+    assert result.report["normal_evidence"]["pixels_share"] > 0.1  # of all pixels, background included
+    cdn_base, cdn = (shape_metrics(m, gt)["cdn_mean"] for m in (base, result.refined))
+    assert cdn < 0.7 * cdn_base, (cdn_base, cdn)
+    unsure = normal_stage(capture, hull, lambda c: truth(c).normal1, lambda c: truth(c).normal2, 0.0, -5.0)
+    result = refine_surface(start, hull, masks, cameras, config, normals=unsure)
     assert result.report["normal_evidence"]["pixels_share"] == 0
     np.testing.assert_allclose(result.refined.vertices, base.vertices, atol=1e-9)
 

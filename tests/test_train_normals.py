@@ -127,3 +127,57 @@ def test_angle_loss_is_the_angle():
     assert 0.05 < float(angle[1] / angle[3]) < 0.07
     with pytest.raises(ConfigError, match="loss"):
         TrainConfig(loss="l1")
+
+
+def test_gain_head_learns_a_quantile_and_leaves_the_normals(tiny_dataset, tmp_path):
+    """--gain-head-only: a head added to trained normals (their weights start it: --init without a
+    head) learns while every other weight stays bit-exact; the pinball loss it minimizes is lowest
+    at the asked quantile of the true gains (the hull's angle error minus the prediction's), a
+    missing true N2 counts as a loss of NO_N2_GAIN_DEG, and pixels without a hull path do not
+    count; a head-only run without --init or without a head is refused."""
+    import dataclasses
+    from lookingglass.errors import ConfigError
+    from lookingglass.normals.train import NO_N2_GAIN_DEG, gain_head_loss
+
+    ds = TransparentSceneDataset(tiny_dataset, "train")
+    train_normals(ds, tmp_path / "normals", _config(epochs=1))
+    init = tmp_path / "normals" / "weights.safetensors"
+    config = _config(epochs=3)
+    config = dataclasses.replace(config, net=dataclasses.replace(config.net, gain_head=True), init=str(init),
+                                 gain_head_only=True, lr=1e-2)
+    train_normals(ds, tmp_path / "head", config)
+    log = [json.loads(line) for line in (tmp_path / "head" / "metrics.jsonl").read_text().splitlines()]
+    assert log[-1]["loss"] < log[0]["loss"]
+    before, after = load_weights(init).state_dict(), load_weights(tmp_path / "head" / "weights.safetensors").state_dict()
+    assert set(after) - set(before) == {k for k in after if k.startswith("gain_head.")} != set()
+    for k in before:
+        torch.testing.assert_close(before[k], after[k], rtol=0, atol=0)
+
+    # 100 pixels: the truth and the prediction at +z, the hull tilted 1..100 degrees from it, so the
+    # true gain at pixel i is (i + 1) degrees
+    def tilted(deg):
+        a = torch.deg2rad(deg)
+        return torch.stack([a.sin(), torch.zeros_like(a), a.cos()]).view(1, 3, 1, -1)
+
+    deg = torch.arange(1.0, 101.0)
+    truth = pred = tilted(torch.zeros(100))
+    hull = tilted(deg)
+    t = {"n1": truth, "n2": truth, "mask": torch.ones(1, 1, 100, dtype=torch.bool),
+         "n2_valid": torch.ones(1, 1, 100, dtype=torch.bool)}
+    loss = lambda g, q=0.8, **kw: float(gain_head_loss(torch.full((1, 2, 1, 100), g), pred, pred,  # noqa: E731
+                                                        kw.get("h1", hull), hull, kw.get("t", t), q))
+    assert loss(80.0) < min(loss(78.0), loss(82.0))
+    assert loss(50.0, 0.5) < min(loss(48.0, 0.5), loss(52.0, 0.5))
+    # no true N2 anywhere: the N2 gains are all NO_N2_GAIN_DEG, so the loss's N2 half is 0 there
+    no_n2 = {**t, "n2_valid": torch.zeros(1, 1, 100, dtype=torch.bool)}
+    both = float(gain_head_loss(torch.stack([torch.full((1, 100), 80.0), torch.full((1, 100), NO_N2_GAIN_DEG)]
+                                            ).view(1, 2, 1, 100), pred, pred, hull, hull, no_n2, 0.8))
+    assert both == pytest.approx(loss(80.0) / 2, rel=1e-5)
+    # the hull without a path at half the pixels: only the others count
+    gone = hull.clone()
+    gone[..., 50:] = 0
+    assert loss(40.0, h1=gone) < min(loss(38.0, h1=gone), loss(42.0, h1=gone))
+    with pytest.raises(ConfigError, match="gain-head"):
+        TrainConfig(gain_head_only=True, init=str(init))
+    with pytest.raises(ConfigError, match="gain-head"):
+        dataclasses.replace(config, init="")

@@ -63,8 +63,9 @@ def adam_step(param: Tensor, moments: tuple[Tensor, Tensor], t: int, lr: float,
 
 def optimize_latent(net: NormalNet, inputs: Tensor, cost_volume: Tensor | None, envmap: EnvironmentMap,
                     image: Tensor, mask: Tensor, cameras: Cameras, config: LatentOptConfig | None = None,
-                    ior: float = IOR_GLASS) -> tuple[Tensor, Tensor, list[float]]:
-    """Returns the optimized (n1, n2), each (V,3,H,W), and the loss after every step."""
+                    ior: float = IOR_GLASS) -> tuple[Tensor, Tensor, list[float], Tensor | None]:
+    """Returns the optimized (n1, n2), each (V,3,H,W), the loss after every step, and the gain
+    head's prediction for the optimized normals (V,2,H,W; None without a head)."""
     config = config or LatentOptConfig()
     for p in net.parameters():
         p.requires_grad_(False)
@@ -85,6 +86,6 @@ def optimize_latent(net: NormalNet, inputs: Tensor, cost_volume: Tensor | None, 
         loss.backward()
         adam_step(latent, moments, step + 1, config.lr)
     with torch.no_grad():
-        n1, n2 = net.decode(latent, inputs)
+        n1, n2, gain = net.decode_with_gain(latent, inputs)
         history.append(float(masked_render_loss(envmap, n1, n2, cameras, image, mask, view_dirs=dirs, ior=ior)))
-    return n1, n2, history
+    return n1, n2, history, gain

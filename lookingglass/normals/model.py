@@ -46,11 +46,19 @@ class NormalNetConfig:
     # with the last layer zero-initialized, so an untrained net starts at the hull's normals and
     # training spends its steps on corrections (the paper's net regresses normals from scratch).
     residual: bool = setting(False, "Predict a correction to the hull's normals (ours), not the normals.")
+    # Ours: a head that predicts, per pixel, how many degrees closer to the truth the net's N1 and
+    # N2 are than the hull's, so that later stages can tell where to follow the prediction (the
+    # rendering error tells that only weakly, and an estimate of the net's own error alone does not
+    # either; docs/history.md). Trained after the normals, on their frozen features.
+    gain_head: bool = setting(False, "Also predict, per pixel, how much closer to the truth the predicted N1 and N2 "
+                                     "are than the hull's (degrees; ours).")
 
     # Settings that change no parameter: weights trained at one view count can start (--init)
     # training at another -- the cost volume samples K neighbours whatever the rig -- and weights
     # trained at one image size at another (the net is fully convolutional).
     FINE_TUNE_FREE: ClassVar[frozenset] = frozenset({"num_views", "cost_volume_theta_deg", "width", "height"})
+    # Weights without the gain head may start the training of one (NormalNet.widen_initial_state).
+    FINE_TUNE_WIDEN: ClassVar[frozenset] = frozenset({"gain_head"})
 
     @property
     def in_channels(self) -> int:
@@ -73,6 +81,11 @@ def cpu_config(**kw) -> NormalNetConfig:
     base = dict(width=128, height=96, enc_channels=(32, 64, 128), fnet_channels=32, groups=8, residual=True)
     base.update(kw)
     return NormalNetConfig(**base)
+
+
+# The gain head's output is GAIN_HEAD_SCALE_DEG * x (degrees): a unit step of its last layer is a
+# few degrees, about the gains at stake.
+GAIN_HEAD_SCALE_DEG = 5.0
 
 
 def _conv(cin: int, cout: int, k: int, stride: int, groups: int) -> nn.Sequential:
@@ -114,6 +127,9 @@ class NormalNet(nn.Module):
         if cfg.residual:
             nn.init.zeros_(self.decoder[-1].weight)
             nn.init.zeros_(self.decoder[-1].bias)
+        if cfg.gain_head:  # reads the decoder's last features, both normals, the hull's, and how far apart they are
+            self.gain_head = nn.Sequential(_conv(c1 + 14, c1, 3, 1, g), nn.Conv2d(c1, 2, 3, 1, 1))
+            nn.init.zeros_(self.gain_head[-1].bias)
         if cfg.use_cost_volume:
             self.fnet = FNet(cfg)
             k2 = cfg.cost_volume_k ** 2
@@ -136,16 +152,42 @@ class NormalNet(nn.Module):
     def decode(self, latent: Tensor, inputs: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """latent -> unit (n1, n2), each (B, 3, H, W). A residual net adds its output to the hull
         normals, read from `inputs` (the tensor `encode` was given)."""
-        out = torch.tanh(self.decoder(latent))
-        n1, n2 = out[:, :3], out[:, 3:]
-        if self.cfg.residual:
-            if inputs is None:
-                raise ValueError("a residual network decodes relative to the hull normals; pass the inputs")
-            n1, n2 = n1 + inputs[:, HULL_N1_CHANNELS], n2 + inputs[:, HULL_N2_CHANNELS]
-        return unit_channels(n1), unit_channels(n2)
+        return self.decode_with_gain(latent, inputs, with_gain=False)[:2]
 
-    def forward(self, inputs: Tensor, cost_volume: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        return self.decode(self.encode(inputs, cost_volume), inputs)
+    def decode_with_gain(self, latent: Tensor, inputs: Tensor | None = None,
+                          with_gain: bool = True) -> tuple[Tensor, Tensor, Tensor | None]:
+        """`decode`, and with a gain head (and `with_gain`) the predicted gains of n1 and n2 over
+        the hull's normals (B, 2, H, W): the hull's angle error minus the prediction's, degrees;
+        else None."""
+        features = self.decoder[:-1](latent)
+        out = torch.tanh(self.decoder[-1](features))
+        n1, n2 = out[:, :3], out[:, 3:]
+        needs_hull = self.cfg.residual or (with_gain and self.cfg.gain_head)
+        if needs_hull and inputs is None:
+            raise ValueError("this network decodes relative to the hull normals; pass the inputs")
+        if self.cfg.residual:
+            n1, n2 = n1 + inputs[:, HULL_N1_CHANNELS], n2 + inputs[:, HULL_N2_CHANNELS]
+        n1, n2 = unit_channels(n1), unit_channels(n2)
+        if not (with_gain and self.cfg.gain_head):
+            return n1, n2, None
+        hull1, hull2 = inputs[:, HULL_N1_CHANNELS], inputs[:, HULL_N2_CHANNELS]
+        # the cosines between prediction and hull, which a 3x3 convolution would only approximate
+        agreement = torch.cat([(n1 * hull1).sum(1, keepdim=True), (n2 * hull2).sum(1, keepdim=True)], 1)
+        head_in = torch.cat([features, n1, n2, hull1, hull2, agreement], 1)
+        return n1, n2, GAIN_HEAD_SCALE_DEG * self.gain_head(head_in)
+
+    def forward(self, inputs: Tensor, cost_volume: Tensor | None = None,
+                with_gain: bool = False) -> tuple[Tensor, ...]:
+        """(n1, n2); with `with_gain`, (n1, n2, gain) (`decode_with_gain`; DDP needs the
+        training step's outputs to come from forward)."""
+        decoded = self.decode_with_gain(self.encode(inputs, cost_volume), inputs, with_gain)
+        return decoded if with_gain else decoded[:2]
+
+    def widen_initial_state(self, state: dict[str, Tensor], saved_config: dict) -> dict[str, Tensor]:
+        """--init weights saved without the gain head start its training: the head keeps its
+        fresh initialization, every other weight is loaded."""
+        own = self.state_dict()
+        return {**{k: v for k, v in own.items() if k.startswith("gain_head.")}, **state}
 
 
 def unit_channels(x: Tensor, eps: float = 1e-6) -> Tensor:

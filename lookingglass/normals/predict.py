@@ -27,7 +27,9 @@ class NormalMaps:
     cameras: the views at H x W, the inputs' frame. n1, n2 (V,H,W,3) camera-frame normals at the
     first and second hit; error (V,H,W) per-pixel squared re-rendering error (mean over RGB, 0 off
     the mask); tir, mask (V,H,W) bool; rendered (V,H,W,3) the re-rendering clipped like the photo
-    (None where the normals were not rendered, e.g. ground truth handed to feature mapping)."""
+    (None where the normals were not rendered, e.g. ground truth handed to feature mapping);
+    predicted_gain (V,H,W,2) the network's estimate of how much closer to the truth its N1 and N2
+    are than the hull's, degrees (None without a gain head)."""
 
     cameras: Cameras
     n1: Tensor
@@ -36,6 +38,7 @@ class NormalMaps:
     tir: Tensor
     mask: Tensor
     rendered: Tensor | None = None
+    predicted_gain: Tensor | None = None
 
     def to(self, device) -> NormalMaps:
         moved = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
@@ -55,17 +58,23 @@ def render_normals(x: NormalInputs, n1: Tensor, n2: Tensor) -> NormalMaps:
     return NormalMaps(x.cameras, n1, n2, error, tir, x.mask, comparable(out.image))
 
 
-def network_normals(net: NormalNet, x: NormalInputs, latent: LatentOptConfig | None = None) -> tuple[Tensor, Tensor]:
-    """(n1, n2) (V,H,W,3) camera frame from NNet, latent-optimized when `latent` has steps."""
+def network_normals(net: NormalNet, x: NormalInputs,
+                    latent: LatentOptConfig | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
+    """(n1, n2) (V,H,W,3) camera frame from NNet, latent-optimized when `latent` has steps, and
+    the gain head's predicted gains over the hull's normals (V,H,W,2) degrees (None when the net
+    has no head)."""
     inputs, cost_volume = network_tensors(x, net.cfg)
     if latent is not None and latent.iterations_n2 + latent.iterations_both > 0:
-        n1, n2, _ = optimize_latent(net, inputs, cost_volume, x.envmap, x.image, x.mask, x.cameras, latent, x.ior)
+        n1, n2, _, gain = optimize_latent(net, inputs, cost_volume, x.envmap, x.image, x.mask, x.cameras, latent,
+                                           x.ior)
     else:
         with torch.no_grad():
-            n1, n2 = net(inputs, cost_volume)
-    return n1.detach().permute(0, 2, 3, 1), n2.detach().permute(0, 2, 3, 1)
+            n1, n2, gain = net(inputs, cost_volume, with_gain=True)
+    gain = None if gain is None else gain.detach().permute(0, 2, 3, 1)
+    return n1.detach().permute(0, 2, 3, 1), n2.detach().permute(0, 2, 3, 1), gain
 
 
 def predict_normals(net: NormalNet, x: NormalInputs, latent: LatentOptConfig | None = None) -> NormalMaps:
     """NNet's normals for the inputs (latent-optimized when `latent` has steps), re-rendered."""
-    return render_normals(x, *network_normals(net, x, latent))
+    n1, n2, gain = network_normals(net, x, latent)
+    return dataclasses.replace(render_normals(x, n1, n2), predicted_gain=gain)

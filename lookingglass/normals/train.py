@@ -48,11 +48,19 @@ class TrainConfig:
                             "a random initialization.")
     loss: str = setting("l2", "Per-pixel loss: l2 (the paper's squared L2 of the normals) or angle (~ the angle "
                               "itself, so the pixels the hull already has right weigh as much as the wrong ones).")
+    gain_head_only: bool = setting(False, "Train only the gain head (needs --net.gain-head): every other weight "
+                                          "stays as --init gave it; the loss is the quantile (pinball) loss of the "
+                                          "predicted gains over the hull's normals.")
+    gain_quantile: float = setting(0.5, "The quantile of the gain over the hull's normals the gain head learns "
+                                        "(lower: a more cautious estimate; 0.5: the median).", range=(0, 1))
 
     def __post_init__(self) -> None:
         check_ranges(self)
         if self.loss not in NORMAL_LOSSES:
             raise ConfigError(f"loss must be one of {', '.join(NORMAL_LOSSES)}, got {self.loss!r}")
+        if self.gain_head_only and not (self.net.gain_head and self.init):
+            raise ConfigError("--gain-head-only trains the gain head of trained normals: it needs --net.gain-head "
+                              "and --init")
 
 
 # The paper's ablations (Table 1): (use_error_map, use_cost_volume).
@@ -104,6 +112,35 @@ def normal_loss(n1: Tensor, n2: Tensor, t: dict, kind: str = "l2") -> Tensor:
     return l1 + l2
 
 
+# A pixel whose true path has no second interface has no usable N2: following the predicted N2
+# there gains this much (a loss: its N2 must not be followed).
+NO_N2_GAIN_DEG = -10.0
+
+
+def angle_deg(n: Tensor, t: Tensor) -> Tensor:
+    """Angle (degrees) between unit normals n, t (B,3,H,W) -> (B,H,W)."""
+    return torch.rad2deg(torch.acos((n * t).sum(1).clamp(-1, 1)))
+
+
+def gain_head_loss(gain: Tensor, n1: Tensor, n2: Tensor, hull1: Tensor, hull2: Tensor, t: dict,
+                   quantile: float) -> Tensor:
+    """The pinball loss of the predicted gains `gain` (B,2,H,W, degrees) against the true ones,
+    the hull's angle error minus the prediction's at each hit (hull1, hull2 (B,3,H,W) the hull's
+    normals, zero where its path does not exist: those pixels do not count), so `gain` learns
+    their `quantile`; where the true path has no second interface the N2 gain is NO_N2_GAIN_DEG."""
+    with torch.no_grad():
+        g1 = angle_deg(hull1, t["n1"]) - angle_deg(n1, t["n1"])
+        g2 = torch.where(t["n2_valid"], angle_deg(hull2, t["n2"]) - angle_deg(n2, t["n2"]),
+                         torch.full_like(g1, NO_N2_GAIN_DEG))
+        hull_exists = (hull1.norm(dim=1) > 0.5) & (hull2.norm(dim=1) > 0.5)
+    m = (t["mask"] & hull_exists).float()
+    total = 0.0
+    for k, g in enumerate((g1, g2)):
+        r = g - gain[:, k]
+        total = total + ((torch.maximum(quantile * r, (quantile - 1) * r) * m).sum() / m.sum().clamp(min=1))
+    return total
+
+
 # ---- the loop -----------------------------------------------------------------------------------
 def train_normals(dataset, run_dir: str | os.PathLike, config: TrainConfig, device: str = "cpu",
                   reporter: Reporter | None = None, max_steps: int | None = None) -> dict:
@@ -125,13 +162,26 @@ def train_normals(dataset, run_dir: str | os.PathLike, config: TrainConfig, devi
                               torch.Generator().manual_seed(config.seed * 1_000_003 + global_step))
         inputs, cost_volume = network_tensors(NormalInputs.from_sample(sample, config.ior, device), config.net)
         t = normal_targets(sample, device)
+        if config.gain_head_only:
+            n1, n2, gain = model(inputs, cost_volume, with_gain=True)
+            return gain_head_loss(gain, n1, n2, inputs[:, HULL_N1_CHANNELS], inputs[:, HULL_N2_CHANNELS], t,
+                                  config.gain_quantile), {
+                "loss_normals": float(normal_loss(n1, n2, t, config.loss))}
         n1, n2 = model(inputs, cost_volume)
         with torch.no_grad():
             loss_hull = float(normal_loss(inputs[:, HULL_N1_CHANNELS], inputs[:, HULL_N2_CHANNELS], t, config.loss))
         return normal_loss(n1, n2, t, config.loss), {"loss_hull": loss_hull}
 
-    return session.fit(lambda: NormalNet(config.net), len(dataset), step,
+    def make_net() -> NormalNet:
+        net = NormalNet(config.net)
+        if config.gain_head_only:  # Adam skips what needs no gradient; the normals stay as --init gave them
+            for name, p in net.named_parameters():
+                p.requires_grad_(name.startswith("gain_head."))
+        return net
+
+    return session.fit(make_net, len(dataset), step,
                        weights_extra=lambda steps: {"kind": "normals", "steps": steps,
                                                     "views": config.net.num_views,
                                                     "envmap_height": envmap_height},
-                       labels={"loss_hull": "hull normals"}, max_steps=max_steps)
+                       labels={"loss_normals": "normals"} if config.gain_head_only else {"loss_hull": "hull normals"},
+                       max_steps=max_steps)

@@ -47,7 +47,7 @@ for name in sorted(json.loads((root / "index.json").read_text())["shapes"]):
                         normal_angle_errors(x.vh_n2, truth.normal2, two)["median"])
             cache[key] = (x, truth, m, two, hull_err)
         x, truth, m, two, hull_err = cache[key]
-        n1, n2 = network_normals(nw.net, x, latent)
+        n1, n2, _ = network_normals(nw.net, x, latent)
         row[label] = (hull_err, (normal_angle_errors(n1, truth.normal1, m)["median"],
                                  normal_angle_errors(n2, truth.normal2, two)["median"]))
     rows[name] = row
