@@ -154,7 +154,7 @@ def _normals(capture, hull: VisualHull, weights: NormalWeights, trained_views: i
              config: PipelineConfig, out_dir: Path, reporter: Reporter) -> NormalStageResult:
     """The normals stage; writes OUT/normals/."""
     with reporter.stage("normals", "normals (network + latent optimization)") as rec:
-        result = run_normal_stage(capture, hull, weights, config.normals.latent, config.device)
+        result = run_normal_stage(capture, hull.mesh, weights, config.normals.latent, config.device)
         write_normal_views(out_dir / "normals", result)
         rec.update(result.report, trained_views=trained_views)
         if trained_views != requested:
@@ -185,14 +185,15 @@ def _surface(hull: VisualHull, normals: NormalStageResult, config: PipelineConfi
     return mesh
 
 
-def _refine(capture, hull: VisualHull, surface: trimesh.Trimesh, normals: NormalStageResult,
+def _refine(capture, hull: VisualHull, surface: trimesh.Trimesh, weights: NormalWeights,
             config: PipelineConfig, out_dir: Path, reporter: Reporter) -> RefineResult:
     """The refine stage: writes OUT/surface.ply (its input) and OUT/refine.png; returns its result
-    (the kept mesh, its re-rendering)."""
-    with reporter.stage("refine", "refine (silhouettes + smoothness)") as rec:
+    (the kept mesh, its re-rendering). Its normal term runs the normal stage again, on its own mesh."""
+    with reporter.stage("refine", "refine (silhouettes + smoothness + the normal net's second pass)") as rec:
         write_mesh(out_dir / "surface.ply", surface)
         result = refine_surface(surface, hull, capture.masks, capture.cameras, config.refine, capture=capture,
-                                normals=normals)
+                                normals=lambda mesh: run_normal_stage(capture, mesh, weights, config.normals.latent,
+                                                                      config.device))
         views = sorted(set(np.linspace(0, capture.num_views - 1, min(4, capture.num_views)).round().astype(int)))
         silhouette_sheet(out_dir / "refine.png", capture.images, capture.masks, result.casts, views,
                          result.rerendering)
@@ -267,7 +268,7 @@ def _run(scene_dir: Path, out_dir: Path, config: PipelineConfig, wanted: tuple[s
             best = _surface(hull, normals, config, trained_views, device, out_dir, reporter)
             best_stage = "surface"
             if "refine" in wanted:
-                refined = _refine(capture, hull, best, normals, config, out_dir, reporter)
+                refined = _refine(capture, hull, best, weights, config, out_dir, reporter)
                 best, best_stage, rendered = refined.mesh, "refine", refined.rerendering
         write_mesh(out_dir / "mesh.ply", best)
         estimate = _estimate_ior(capture, best, best_stage, config, reporter) if ior_source == "auto" else None

@@ -45,12 +45,15 @@ the mesh grew spikes (outside term 2e-4 -> 0.1 px^2). The linear solves fixed th
   (smooth_weight 200, fair_weight 20) a shrunken ellipsoid comes out right (CD 23.1 -> 2.9, CDN
   2.9 -> 3.6) but the bracket's CD goes 13.3 -> 17.7; with the local default the ellipsoid gets
   shallow ridges (CDN 1.7 -> 9) while the networks' lumpy surfaces get smoother.
-The normal term (`normal_iterations`, off) descends the misfit between the mesh's two-bounce
-normals (render/differentiable.py) and the network's N1/N2, each pixel weighted by how much better
-the prediction explains the photo than the mesh does. With true normals as the target it reaches the
-issue's bar on the duck (CDN-mean 8.0 -> 5.9, CD 2.6 -> 1.7); with the network's it makes the
-normals worse (duck 8.0 -> 10.1, key 9.6 -> 13.5): the rendering error does not tell well enough
-where a 7-degree prediction beats a 6-degree mesh (docs/results.md).
+The normal term (`normal_iterations`) descends the misfit between the mesh's two-bounce normals
+(render/differentiable.py) and the normal network's N1/N2 from a second pass: after the silhouette
+iterations the network is run again, fed this mesh in place of the hull, and its gain head says per
+pixel how many degrees closer to the truth its normals are than the mesh's; the term follows them
+where both gains exceed `normal_trust_gain` (2-5% of the pixels on the validation set), and its
+result stays only if it re-renders no worse against the photos. Fed the hull, the same head (or the
+rendering error) cannot say where the prediction beats a mesh the stage has already made better
+than the hull: that made smooth shapes worse (docs/history.md, sessions 40-42). With true normals
+as the target the term reaches the issue's bar on the duck (CDN-mean 8.0 -> 5.9, CD 2.6 -> 1.7).
 The photometric term (`photometric_iterations`, off) lowers the re-rendering error but makes the
 normals worse against the ground truth (docs/results.md). What the stage does use the photos for is
 the keep check: input and refined mesh are re-rendered as glass (`render.compare`) and the one
@@ -71,11 +74,11 @@ import trimesh
 from .configio import check_ranges, setting
 from .errors import ConfigError
 from .hull import VisualHull, sample_silhouette_fields, silhouette_fields
-from .normals.render_layer import comparable, prediction_error_maps, render_layer
+from .normals.render_layer import comparable, render_layer
 from .physics.camera import Cameras
 from .physics.environment import EnvironmentMap
 from .render.compare import RERENDER_WIDTH, Rerendering, photos_at, rerender
-from .render.differentiable import mesh_two_bounce, vertex_normals_t
+from .render.differentiable import mesh_caster, mesh_two_bounce, rays_two_bounce, vertex_normals_t
 from .render.raycast import RayCaster, object_masks
 
 
@@ -139,20 +142,15 @@ class RefineConfig:
                                       range=(0.001, 10))
     photometric_envmap_height: int = setting(64, "Environment-map height the photometric loss looks up (a blurred map "
                                                  "widens the basin).", range=(8, 4096))
-    normal_iterations: int = setting(0, "Descent steps pulling the mesh's two-bounce normals toward the normal network's "
-                                     "N1/N2 where the prediction explains the photo better than the mesh does (0: off).",
-                                     range=(0, None))
+    normal_iterations: int = setting(16, "Descent steps pulling the mesh's two-bounce normals toward a second pass of the "
+                                      "normal network, fed the mesh in place of the hull, where its gain head says both "
+                                      "normals beat the mesh's by more than normal_trust_gain (0: off; skipped for a "
+                                      "normal net without a gain head).", range=(0, None))
     normal_step: float = setting(0.5, "Largest normal-term step, in edge lengths (halved while the loss does not fall).",
                                  range=(0, None))
-    normal_evidence_blur: int = setting(5, "Box filter (pixels, odd) over both rendering-error maps before they are "
-                                           "compared: single pixels are noisy evidence (nets without a gain head).",
-                                        range=(1, 31))
-    normal_full_share: float = setting(0.0, "The share of the object's pixels the prediction must be trusted on for the "
-                                            "normal term's full step; fewer scale it down in proportion (0: always the "
-                                            "full step).", range=(0, 1))
-    normal_trust_gain: float = setting(1.0, "With a normal net that has a gain head: a pixel pulls where the predicted "
-                                            "normals are closer to the truth than the hull's by more than this, in "
-                                            "degrees, at both hits (the head's estimate).", range=(None, None))
+    normal_trust_gain: float = setting(2.0, "A pixel pulls where the gain head predicts the network's normals closer to "
+                                            "the truth than the mesh's by more than this, in degrees, at both hits.",
+                                       range=(None, None))
     keep_tolerance: float = setting(0.002, "The refined mesh is kept unless a measure is worse than the input's by "
                                            "more than this (IoU; relative for the roughness).", range=(0, None))
 
@@ -161,8 +159,6 @@ class RefineConfig:
         if self.view_coverage_zero >= self.view_coverage_full:
             raise ConfigError(f"view_coverage_zero ({self.view_coverage_zero}) must be below view_coverage_full "
                               f"({self.view_coverage_full})")
-        if self.normal_evidence_blur % 2 == 0:
-            raise ConfigError(f"normal_evidence_blur must be odd, got {self.normal_evidence_blur}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -473,59 +469,62 @@ class _PhotoTarget:
 @dataclass
 class _NormalTarget:
     """The normal network's prediction as a target for the mesh's own two-bounce normals, at the
-    network's resolution in the normalized frame: cams, n1, n2 (V, h, w, 3) camera frame, and the
-    per-pixel weight, 0 where the prediction is totally reflected or the mesh's two-bounce path
-    does not exist, and else:
-    - a net with a gain head (how much closer to the truth its normals are than the hull's, per
-      pixel and hit): 1 where that exceeds `trust_gain` degrees at both hits, 0 elsewhere;
-    - a net without: how much better the prediction explains the photo than the mesh it starts
-      from does, (e_mesh - e_pred) / (e_mesh + e_pred) clipped to [0, 1] on the box-filtered
-      rendering errors of both (the same rendering layer, photos and environment map).
-    A prediction nothing backs pulls nothing (issue 25: on shapes unlike the training set the
-    predicted N1 is often worse than the mesh's)."""
+    network's resolution in the normalized frame, at the pixels it is trusted on: their rays
+    (origins, dirs) and target normals n1, n2 (K, 3), world frame. A pixel is trusted where the
+    net's gain head (how much closer to the truth its normals are than those of the mesh it was
+    fed) exceeds `trust_gain` degrees at both hits, less the angle by which this mesh's normals
+    have turned from the fed mesh's (a lower bound on the gain over this mesh, by the triangle
+    inequality), not where the prediction is totally reflected nor where the mesh's two-bounce
+    path does not exist. Fed the hull, the head's gains are over the hull, which the refined mesh
+    already beats on smooth shapes; fed the mesh being refined (the refine stage's second pass),
+    over that mesh: only there does it say where to follow the prediction (docs/history.md,
+    sessions 41-42)."""
 
-    cams: Cameras
+    origins: torch.Tensor
+    dirs: torch.Tensor
     n1: torch.Tensor
     n2: torch.Tensor
-    weight: torch.Tensor
     ior: float
+    share: float  # of the masks' pixels
 
     @classmethod
-    def of(cls, stage, hull: VisualHull, vertices: np.ndarray, faces: np.ndarray, blur: int,
-           trust_gain: float = 1.0) -> "_NormalTarget":
+    def of(cls, stage, hull: VisualHull, vertices: np.ndarray, faces: np.ndarray,
+           trust_gain: float) -> "_NormalTarget":
         inputs, maps = stage.inputs, stage.maps.to("cpu")
+        if maps.predicted_gain is None:
+            raise ValueError("the normal term needs a normal net with a gain head")
         cams = hull.cameras_normalized(inputs.cameras.to(device="cpu")).to(dtype=torch.float32)
         with torch.no_grad():
             tb = mesh_two_bounce(torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces, dtype=torch.long),
                                  cams, ior=inputs.ior)
-            mask = inputs.mask.cpu()
-            if maps.predicted_gain is not None:
-                # the head compares the prediction with the hull; this mesh is closer to the truth than
-                # the hull by at most the angle between their normals, so the prediction's gain over the
-                # mesh is at least the head's gain minus that angle (the triangle inequality on angles)
-                trusted = mask & tb.valid & ~maps.tir
-                for k, (mesh_n, hull_n) in enumerate(((tb.normal1, inputs.vh_n1), (tb.normal2, inputs.vh_n2))):
-                    moved = torch.rad2deg(torch.acos((mesh_n * hull_n.cpu()).sum(-1).clamp(-1, 1)))
-                    trusted &= maps.predicted_gain[..., k] - moved > trust_gain
-                return cls(cams, maps.n1.float(), maps.n2.float(), trusted.float(), float(inputs.ior))
-            e_mesh = prediction_error_maps(inputs.envmap.to("cpu"), tb.normal1, tb.normal2, cams, inputs.image.cpu(),
-                                           mask, inputs.ior)[0]
-            smooth = lambda e: torch.nn.functional.avg_pool2d(  # noqa: E731
-                e[:, None], blur, 1, blur // 2, count_include_pad=False)[:, 0]
-            e_mesh, e_pred = smooth(e_mesh), smooth(maps.error)
-            weight = ((e_mesh - e_pred) / (e_mesh + e_pred).clamp(min=1e-8)).clamp(0, 1)
-            weight = weight * (mask & tb.valid & ~maps.tir)
-        return cls(cams, maps.n1.float(), maps.n2.float(), weight.float(), float(inputs.ior))
+            trusted = inputs.mask.cpu() & tb.valid & ~maps.tir
+            for k, (mesh_n, fed_n) in enumerate(((tb.normal1, inputs.vh_n1), (tb.normal2, inputs.vh_n2))):
+                turned = torch.rad2deg(torch.acos((mesh_n * fed_n.cpu()).sum(-1).clamp(-1, 1)))
+                trusted &= maps.predicted_gain[..., k] - turned > trust_gain
+        return cls.from_maps(cams, maps.n1.float(), maps.n2.float(), trusted, float(inputs.ior),
+                             float(trusted.sum() / max(float(inputs.mask.sum()), 1)))
+
+    @classmethod
+    def from_maps(cls, cams: Cameras, n1: torch.Tensor, n2: torch.Tensor, trusted: torch.Tensor, ior: float,
+                  share: float | None = None) -> "_NormalTarget":
+        """The target at the `trusted` (V, h, w) pixels of camera-frame maps n1, n2 (V, h, w, 3):
+        only those pixels' rays are cast again at every step (2-15% of them on the validation set),
+        against world-frame targets (the misfit's dot products do not depend on the frame)."""
+        origins, dirs = cams.pixel_rays()
+        pick = trusted.reshape(-1).bool()
+        world = lambda n: cams.camera_to_world(n.to(dirs.dtype)).reshape(-1, 3)[pick]  # noqa: E731
+        share = float(pick.float().mean()) if share is None else share
+        return cls(origins.reshape(-1, 3)[pick], dirs.reshape(-1, 3)[pick], world(n1), world(n2), ior, share)
 
     def loss(self, vertices: np.ndarray, faces: np.ndarray, grad: bool = False) -> tuple[float, np.ndarray | None]:
-        """Weighted mean of (1 - cos) between the mesh's and the target's normals at both hits,
-        over the pixels where the mesh's two-bounce path exists; with its gradient when `grad`."""
+        """Mean of (1 - cos) between the mesh's and the target's normals at both hits, over the
+        trusted pixels where the mesh's two-bounce path exists; with its gradient when `grad`."""
         x = torch.as_tensor(vertices, dtype=torch.float32).requires_grad_(grad)
+        f = torch.as_tensor(faces, dtype=torch.long)
         with torch.set_grad_enabled(grad):
-            tb = mesh_two_bounce(x, torch.as_tensor(faces, dtype=torch.long), self.cams, ior=self.ior)
-            w = self.weight * tb.valid
-            misfit = 2 - (tb.normal1 * self.n1).sum(-1) - (tb.normal2 * self.n2).sum(-1)
-            loss = (w * misfit).sum() / w.sum().clamp(min=1e-8)
+            n1, n2, valid = rays_two_bounce(x, f, self.origins, self.dirs, mesh_caster(x, f), self.ior)
+            misfit = 2 - (n1 * self.n1).sum(-1) - (n2 * self.n2).sum(-1)
+            loss = (valid * misfit).sum() / valid.sum().clamp(min=1)
             if not grad:
                 return float(loss), None
             loss.backward()
@@ -598,9 +597,11 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     (capture frame, H x W). `hull` gives the normalized frame; `view_coverage` (V,) the share of
     each mask the hull covers (default: `hull.view_coverage` when it has one per view, else every
     view counts fully). capture: the loaded capture (photos, environment map, ior) for the
-    re-rendering check and the photometric term (both skipped without). normals: the normal stage's
-    result (`NormalStageResult`) for the normal term (skipped without). Returns the kept mesh (the better of the refined one and the input) and the
-    report. Warns (warnings.warn) for every down-weighted view."""
+    re-rendering check and the photometric term (both skipped without). normals: for the normal
+    term, a function that runs the normal stage (`run_normal_stage`) on a mesh in the capture frame
+    (called once, on the mesh after the silhouette iterations: the second pass), or a
+    `NormalStageResult` made elsewhere; the term is skipped without, or when the net has no gain
+    head. Returns the kept mesh (the better of the refined one and the input) and the report. Warns (warnings.warn) for every down-weighted view."""
     config = config or RefineConfig()
     start_time = time.perf_counter()
     masks = np.asarray(masks, bool)
@@ -651,6 +652,9 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         return apply, np.einsum("nii->ni", M) + (lap_sq_t @ c_lap)[:, None] + c_diag  # diag of L^T C L
 
     c_lap = w_smooth + w_fair * fair_share  # weight of each vertex's Laplacian row
+
+    # the silhouette solves (each solves for the minimum of the quadratic terms, so one more after
+    # the normal term undoes most of it: ellipsoid CDN-mean 1.8 -> 4.2 degrees, session 42)
     for _ in range(config.iterations):
         s, g = field_values(fields, cams, x)
         cons = _constraints(x, faces, s, g, cams, weights, config, w_sil)
@@ -659,6 +663,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
             - config.anchor_weight * (x - x0)
         apply, diag = system(cons.M)
         x = _unfolded(x0, x, x + _pcg(apply, rhs, diag, config.cg_iterations), faces)
+
     def descend(target, step: float, iterations: int) -> list[float]:
         """Descend `target`'s loss from the current vertices (the photometric or the normal term),
         preconditioned by the silhouette solve's system there; returns the loss before each step and
@@ -670,16 +675,40 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
                              step * config.edge_length, iterations)
         return losses + [target.loss(x, faces)[0]]
 
-    normal_losses: list[float] = []
+    mean_w = lambda a: float((a * weights).sum() / max(weights.sum(), 1e-12))  # noqa: E731
+    prepared = photos_at(capture, config.rerender_width) if capture is not None and config.rerender_width > 0 else None
+    rerendered: dict = {}
+    normal_report: dict = {}
     if config.normal_iterations and normals is not None:
         t_normals = time.perf_counter()
-        target = _NormalTarget.of(normals, hull, x, faces, config.normal_evidence_blur, config.normal_trust_gain)
-        trusted_share = float((target.weight > 0).sum() / max(float(normals.inputs.mask.sum()), 1))
-        step_scale = min(1.0, trusted_share / config.normal_full_share) if config.normal_full_share > 0 else 1.0
-        normal_losses = descend(target, config.normal_step * step_scale, config.normal_iterations)
+        current = lambda: trimesh.Trimesh(hull.denormalize_points(x), faces, process=False)  # noqa: E731
+        # the second pass: the network fed this mesh, so that its gain head's gains are over it
+        stage = normals(current()) if callable(normals) else normals
+        if stage.maps.predicted_gain is None:
+            normal_report = {"skipped": "the normal net has no gain head"}
+        else:
+            before_term = x.copy()
+            target = _NormalTarget.of(stage, hull, x, faces, config.normal_trust_gain)
+            share = target.share
+            normal_report = {"trusted_share": round(share, 4)}
+            if share > 0:
+                normal_report.update(loss=[round(v, 4) for v in descend(target, config.normal_step,
+                                                                           config.normal_iterations)], kept=True)
+            if share > 0 and prepared is not None:
+                # the gain head is a weak signal on some shapes (the key, session 42): the term's
+                # result stays only where it explains the photos no worse than the mesh before it
+                with_term = rerender(current(), capture, prepared=prepared)
+                x, x_term = before_term, x
+                without = rerender(current(), capture, prepared=prepared)
+                e_without, e_with = mean_w(without.error), mean_w(with_term.error)
+                normal_report["rerender_error"] = [round(e_without, 4), round(e_with, 4)]
+                if e_with > e_without * (1 + RERENDER_TOLERANCE):
+                    normal_report["kept"] = False
+                    rerendered["refined"] = without
+                else:
+                    x = x_term
+                    rerendered["refined"] = with_term
         timings["normals"] = time.perf_counter() - t_normals
-        normal_weight_mean = float(target.weight.sum() / max(float((target.weight > 0).sum()), 1))
-        normal_weight_share = float((target.weight > 0).float().mean())
     photo_losses: list[float] = []
     if config.photometric_iterations and capture is not None:
         t_photo = time.perf_counter()
@@ -695,7 +724,6 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     cast_in, cast_out = object_masks(mesh, cameras), object_masks(refined, cameras)
     iou_in, iou_out = cast_iou(cast_in, masks), cast_iou(cast_out, masks)
     counted = weights > 0 if (weights > 0).any() else np.ones(V, bool)
-    mean_w = lambda a: float((a * weights).sum() / max(weights.sum(), 1e-12))  # noqa: E731
     tol = config.keep_tolerance
     worse = []
     if mean_w(iou_out) < mean_w(iou_in) - 1e-5:
@@ -706,10 +734,10 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         worse.append(f"roughness {before['smooth']:.4g} -> {after['smooth']:.4g}")
     if folds > 0:
         worse.append(f"{folds} fold-over(s)")
-    rerendered = {}
-    if capture is not None and config.rerender_width > 0:
-        prepared = photos_at(capture, config.rerender_width)
-        rerendered = {k: rerender(m, capture, prepared=prepared) for k, m in (("input", mesh), ("refined", refined))}
+    if prepared is not None:
+        rerendered["input"] = rerender(mesh, capture, prepared=prepared)
+        if "refined" not in rerendered or photo_losses:
+            rerendered["refined"] = rerender(refined, capture, prepared=prepared)
         rr_in, rr_out = (mean_w(rerendered[k].error) for k in ("input", "refined"))
         if rr_out > rr_in * (1 + RERENDER_TOLERANCE):
             worse.append(f"re-rendering error {rr_in:.4f} -> {rr_out:.4f}")
@@ -728,10 +756,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
             "rerender_error_views": {k: [round(float(e), 5) for e in r.error] for k, r in rerendered.items()}}
            if rerendered else {}),
         **({"photometric_loss": [round(v, 4) for v in photo_losses]} if photo_losses else {}),
-        **({"normal_loss": [round(v, 4) for v in normal_losses], "normal_evidence": {
-            "pixels_share": round(normal_weight_share, 4), "mean_weight": round(normal_weight_mean, 4),
-            "object_share": round(trusted_share, 4), "step_scale": round(step_scale, 4)}}
-           if normal_losses else {}),
+        **({"normal_term": normal_report} if normal_report else {}),
         "down_weighted_views": [int(v) for v in low],
         "vertices": int(len(x0)), "faces": int(len(faces)), "iterations": config.iterations,
         "constraints_first_last": [history[0], history[-1]] if history else None,

@@ -47,11 +47,12 @@ class NormalNetConfig:
     # training spends its steps on corrections (the paper's net regresses normals from scratch).
     residual: bool = setting(False, "Predict a correction to the hull's normals (ours), not the normals.")
     # Ours: a head that predicts, per pixel, how many degrees closer to the truth the net's N1 and
-    # N2 are than the hull's, so that later stages can tell where to follow the prediction (the
+    # N2 are than the hull's -- than the input mesh's, whatever mesh the net is fed: the refine
+    # stage feeds it its own mesh -- so that later stages can tell where to follow the prediction (the
     # rendering error tells that only weakly, and an estimate of the net's own error alone does not
     # either; docs/history.md). Trained after the normals, on their frozen features.
     gain_head: bool = setting(False, "Also predict, per pixel, how much closer to the truth the predicted N1 and N2 "
-                                     "are than the hull's (degrees; ours).")
+                                     "are than the input mesh's (the hull's in training; degrees; ours).")
 
     # Settings that change no parameter: weights trained at one view count can start (--init)
     # training at another -- the cost volume samples K neighbours whatever the rig -- and weights

@@ -15,12 +15,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import trimesh
 
 from ..capture.images import write_image
 from ..configio import setting
 from ..errors import ConfigError
 from ..fileio import write_atomic
-from ..hull import VisualHull
 from ..viz import normal_map_rgb, tonemap
 from ..weights import NormalWeights
 from .inputs import NormalInputs
@@ -55,14 +55,15 @@ class NormalStageResult:
     report: dict
 
 
-def run_normal_stage(capture, hull: VisualHull, weights: NormalWeights, latent: LatentOptConfig | None,
+def run_normal_stage(capture, mesh: trimesh.Trimesh, weights: NormalWeights, latent: LatentOptConfig | None,
                      device: str = "cpu") -> NormalStageResult:
     """capture: anything with images (V,H,W,3) linear, masks (V,H,W), envmap (He,2He,3), cameras
-    and ior (a loaded `Capture`, or a dataset scene's `capture(i)`); hull in the same frame. The
-    networks and the rendering layer run on `device`."""
+    and ior (a loaded `Capture`, or a dataset scene's `capture(i)`); mesh in the same frame, the one
+    whose two-bounce normals the network corrects: the visual hull's, or the refine stage's own
+    mesh in its second pass. The networks and the rendering layer run on `device`."""
     net = weights.net.to(device)
     x = NormalInputs.from_capture(capture.images, capture.masks, capture.envmap, capture.cameras, capture.ior,
-                                  hull.mesh, net.cfg.width, net.cfg.height, weights.envmap_height, device=device)
+                                  mesh, net.cfg.width, net.cfg.height, weights.envmap_height, device=device)
     maps = predict_normals(net, x, latent)
     hull_maps = render_normals(x, x.vh_n1, x.vh_n2)
     steps = [latent.iterations_n2, latent.iterations_both] if latent is not None else [0, 0]

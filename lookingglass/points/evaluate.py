@@ -103,7 +103,7 @@ class _ShapeEvaluation:
                            mask)
         record["vh+gt-normals"] = _surface_metrics(hull, gt, truth, self._surface(self.strategies[0]), None)[1]
         if self.weights is not None:
-            normals = run_normal_stage(capture, hull, self.weights, self.latent, self.device)
+            normals = run_normal_stage(capture, hull.mesh, self.weights, self.latent, self.device)
             maps = normals.maps
             for strategy in self.strategies:
                 record[f"normals-{strategy}"] = _surface_metrics(hull, gt, maps, self._surface(strategy), None)[1]
@@ -111,8 +111,9 @@ class _ShapeEvaluation:
                 mesh, record[f"pnet-{self.point_net.strategy}"] = _surface_metrics(
                     hull, gt, maps, self.surface, self.point_net, lambda m, g: self._scored(m, g, capture))
                 if mesh is not None and self.refine is not None:  # as reconstruct's refine stage, on that surface
-                    refined = refine_surface(mesh, hull, capture.masks, capture.cameras, self.refine,
-                                             capture=capture, normals=normals)
+                    refined = refine_surface(mesh, hull, capture.masks, capture.cameras, self.refine, capture=capture,
+                                             normals=lambda m: run_normal_stage(capture, m, self.weights, self.latent,
+                                                                                self.device))
                     record["refined"] = {**self._scored(refined.mesh, gt, capture), "kept": refined.report["kept"]}
         return record
 

@@ -62,19 +62,13 @@ def _hit(vertices: Tensor, faces: Tensor, normals: Tensor, face: Tensor, origin:
     return t, torch.nn.functional.normalize(n, dim=-1, eps=1e-12)
 
 
-def mesh_two_bounce(vertices: Tensor, faces: Tensor, cameras: Cameras, caster: RayCaster | None = None,
-                    ior: float = IOR_GLASS, ext_ior: float = IOR_AIR) -> MeshTwoBounce:
-    """The first- and second-hit normals of the mesh (vertices (N, 3) float, possibly requiring
-    grad; faces (F, 3) long) for the pixel-centre rays of `cameras` (same frame). caster: an
-    Embree scene of the same mesh (built here when None)."""
-    if caster is None:
-        import trimesh
-
-        caster = RayCaster(trimesh.Trimesh(vertices.detach().cpu().numpy(), faces.cpu().numpy(), process=False))
-    V, H, W = cameras.num_views, cameras.height, cameras.width
-    cams = cameras.to(dtype=vertices.dtype, device=vertices.device)
-    origins, dirs = cams.pixel_rays()
-    o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+def rays_two_bounce(vertices: Tensor, faces: Tensor, origins: Tensor, dirs: Tensor, caster: RayCaster,
+                    ior: float = IOR_GLASS, ext_ior: float = IOR_AIR) -> tuple[Tensor, Tensor, Tensor]:
+    """The first- and second-hit world-frame unit normals (K, 3) of rays (origins, dirs) (K, 3)
+    against the mesh (zero where undefined), differentiable w.r.t. the vertices, and valid (K,)
+    bool: the ray enters at the first hit and reaches a second one from inside without total
+    internal reflection at the first. caster: an Embree scene of the same mesh."""
+    o, d = origins, dirs
     normals = vertex_normals_t(vertices, faces)
 
     _, face1, _, _ = caster.intersect_raw(o.detach().cpu().numpy(), d.detach().cpu().numpy())
@@ -91,11 +85,32 @@ def mesh_two_bounce(vertices: Tensor, faces: Tensor, cameras: Cameras, caster: R
     k = go[j2]
     _, n2 = _hit(vertices, faces, normals, torch.from_numpy(face2).to(vertices.device)[j2], p1[k], refracted[k])
 
-    total = V * H * W
+    total = len(o)
     normal1 = torch.zeros(total, 3, dtype=vertices.dtype, device=vertices.device).index_put((i1,), n1)
     normal2 = torch.zeros(total, 3, dtype=vertices.dtype, device=vertices.device).index_put((i1[k],), n2)
     valid = torch.zeros(total, dtype=torch.bool, device=vertices.device)
     valid[i1[k]] = True
+    return normal1, normal2, valid
+
+
+def mesh_caster(vertices: Tensor, faces: Tensor) -> RayCaster:
+    """An Embree scene of the mesh (vertices (N, 3), faces (F, 3) long) as it is now."""
+    import trimesh
+
+    return RayCaster(trimesh.Trimesh(vertices.detach().cpu().numpy(), faces.cpu().numpy(), process=False))
+
+
+def mesh_two_bounce(vertices: Tensor, faces: Tensor, cameras: Cameras, caster: RayCaster | None = None,
+                    ior: float = IOR_GLASS, ext_ior: float = IOR_AIR) -> MeshTwoBounce:
+    """The first- and second-hit normals of the mesh (vertices (N, 3) float, possibly requiring
+    grad; faces (F, 3) long) for the pixel-centre rays of `cameras` (same frame). caster: an
+    Embree scene of the same mesh (built here when None)."""
+    caster = caster or mesh_caster(vertices, faces)
+    V, H, W = cameras.num_views, cameras.height, cameras.width
+    cams = cameras.to(dtype=vertices.dtype, device=vertices.device)
+    origins, dirs = cams.pixel_rays()
+    d = dirs.reshape(-1, 3)
+    normal1, normal2, valid = rays_two_bounce(vertices, faces, origins.reshape(-1, 3), d, caster, ior, ext_ior)
     shape = (V, H, W, 3)
     return MeshTwoBounce(cams.world_to_camera(normal1.view(shape)), cams.world_to_camera(normal2.view(shape)),
                          valid.view(V, H, W), d.view(shape))

@@ -47,7 +47,7 @@ def main(argv: list[str]) -> int:
             if kept is not None and kept.exists():  # made by an earlier run: the estimate alone
                 mesh = load_mesh(kept)
             else:
-                normals = run_normal_stage(capture, hull, normal_net, config.normals.latent, "cpu")
+                normals = run_normal_stage(capture, hull.mesh, normal_net, config.normals.latent, "cpu")
                 surface, _ = surface_from_normals(hull, normals.maps, config.surface, point_net)
                 mesh = refine_surface(surface, hull, capture.masks, capture.cameras, config.refine, capture=capture,
                                       normals=normals).mesh

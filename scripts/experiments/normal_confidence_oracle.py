@@ -30,13 +30,13 @@ for name in sys.argv[3].split(","):
     cap = load_capture(root / name / "scene"); gt = load_mesh(root / name / "ground_truth.ply")
     hull = carve_visual_hull(cap.masks, cap.cameras, cfg.hull)
     weights = load_normal_net(shipped_weights(cap.num_views)[0])
-    stage = run_normal_stage(cap, hull, weights, cfg.normals.latent)
+    stage = run_normal_stage(cap, hull.mesh, weights, cfg.normals.latent)
     x, maps = stage.inputs, stage.maps
     truth = trace_two_bounce(gt, x.cameras, ior=cap.ior)
     surf = load_mesh(out / name / "surface.ply")
     share = {}
 
-    def oracle_of(cls, stage, hull, vertices, faces, blur):
+    def oracle_of(cls, stage, hull, vertices, faces, trust_gain):
         cams = hull.cameras_normalized(x.cameras.to(device="cpu")).to(dtype=torch.float32)
         with torch.no_grad():
             tb = mesh_two_bounce(torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces, dtype=torch.long),
@@ -55,7 +55,7 @@ for name in sys.argv[3].split(","):
             better2 = angle(tb.normal2, maps.n2) > 2 * angle(maps.n2, truth.normal2) + margin
         weight = (valid & better1 & better2).float()
         share["trusted"] = float(weight.sum() / valid.sum().clamp(min=1))
-        return cls(cams, maps.n1.float(), maps.n2.float(), weight, float(x.ior))
+        return cls.from_maps(cams, maps.n1.float(), maps.n2.float(), weight > 0, float(x.ior))
 
     rows = []
     for n in (0, iterations):

@@ -83,13 +83,13 @@ for name in sys.argv[3].split(","):
     cap = load_capture(root / name / "scene"); gt = load_mesh(root / name / "ground_truth.ply")
     hull = carve_visual_hull(cap.masks, cap.cameras, cfg.hull)
     weights = load_normal_net(shipped_weights(cap.num_views)[0])
-    stage = run_normal_stage(cap, hull, weights, cfg.normals.latent)
+    stage = run_normal_stage(cap, hull.mesh, weights, cfg.normals.latent)
     x, maps = stage.inputs, stage.maps
     truth = trace_two_bounce(gt, x.cameras, ior=cap.ior)
     surf = load_mesh(out / name / "surface.ply")
     info = {}
 
-    def consistency_of(cls, stage, hull, vertices, faces, blur):
+    def consistency_of(cls, stage, hull, vertices, faces, trust_gain):
         cams = hull.cameras_normalized(x.cameras.to(device="cpu")).to(dtype=torch.float32)
         with torch.no_grad():
             tb = mesh_two_bounce(torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces, dtype=torch.long),
@@ -136,7 +136,7 @@ for name in sys.argv[3].split(","):
         if margin > 0:
             weight *= ((angle(fused[0], n_mesh[0]) > margin) | (angle(fused[1], n_mesh[1]) > margin)).float()
         n1, n2 = (fused[0], fused[1]) if mode == "fused" else (maps.n1.float(), maps.n2.float())
-        return cls(cams, n1, n2, weight, float(x.ior))
+        return cls.from_maps(cams, n1, n2, weight > 0, float(x.ior))
 
     def sp_average(faces, n):
         return (refine_mod.sp.identity(n, format="csr") - refine_mod.uniform_laplacian(faces, n)).tocsr()

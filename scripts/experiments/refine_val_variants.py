@@ -4,10 +4,10 @@ view's silhouette IoU, whether `reconstruct`'s keep check keeps the refined mesh
 
 Usage, after `lookingglass validate --data DATA --out RUNS`:
     .venv/bin/python scripts/experiments/refine_val_variants.py DATA RUNS \\
-        "default" "iterations=12" "iterations=24,silhouette_views=0" [--shapes duck,key] [--normals W]
-Each variant is "default" or comma-separated RefineConfig fields (key=value) over the defaults. With
---normals W (a normal net's weights.safetensors, or "shipped"), the normal stage runs as `reconstruct` runs
-it (default latent steps) and the refine stage gets its maps (its normal term acts where normal_iterations > 0).
+        "default" "iterations=12" "iterations=24,silhouette_views=0" [--shapes duck,key] [--normals W|shipped|none]
+Each variant is "default" or comma-separated RefineConfig fields (key=value) over the defaults. The refine
+stage's normal term runs as in `reconstruct`: the normal net (--normals: a weights.safetensors, by default the
+shipped one for the view count; "none": no normal term) run again on the mesh the silhouette iterations leave.
 """
 import argparse
 import json
@@ -42,7 +42,8 @@ def main() -> None:
     parser.add_argument("runs")
     parser.add_argument("variants", nargs="+")
     parser.add_argument("--shapes", default="")
-    parser.add_argument("--normals", default="")
+    parser.add_argument("--normals", default="shipped", help="the normal net of the normal term's second pass "
+                        "(shipped: the capture's view count's; none: no normal term)")
     args = parser.parse_args()
     warnings.simplefilter("ignore")
     data, runs = Path(args.data), Path(args.runs)
@@ -56,9 +57,10 @@ def main() -> None:
         hull = carve_visual_hull(capture.masks, capture.cameras.to(dtype=torch.float32), hull_config)
         surface = load_mesh(runs / name / "surface.ply")
         stage = None
-        if args.normals:
+        if args.normals != "none":  # as reconstruct: the net run again on the mesh the silhouettes leave
             path = shipped_weights(capture.num_views)[0] if args.normals == "shipped" else args.normals
-            stage = run_normal_stage(capture, hull, load_normal_net(path), config.normals.latent)
+            net = load_normal_net(path)
+            stage = lambda mesh, c=capture, n=net: run_normal_stage(c, mesh, n, config.normals.latent)  # noqa: E731
         h, s = shape_metrics(hull.mesh, gt), shape_metrics(surface, gt)
         print(f"{name:15s} hull    CD {h['cd']:6.2f} CDN {h['cdn_mean']:6.2f} metro {h['metro']:6.2f} | "
               f"surface CD {s['cd']:6.2f} CDN {s['cdn_mean']:6.2f}", flush=True)
@@ -73,7 +75,7 @@ def main() -> None:
             rr = result.report.get("rerender_error", [np.nan, np.nan])[1]
             rows[v].append((h["cd"], h["cdn_mean"], m["cd"], m["cdn_mean"], m["metro"], iou, kept, seconds, rr))
             print(f"{name:15s} {v:40s} CD {m['cd']:6.2f} CDN {m['cdn_mean']:6.2f} metro {m['metro']:6.2f} "
-                  f"IoU {iou:.4f} trusted {result.report.get('normal_evidence', {}).get('pixels_share', 0):.3f} bias {result.report['terms_after'].get('silhouette_bias_px', np.nan):+.3f}px rr {rr:.4f} {'kept' if kept else 'REJECTED ' + result.report.get('kept_why', '')} "
+                  f"IoU {iou:.4f} trusted {result.report.get('normal_term', {}).get('trusted_share', 0):.3f} bias {result.report['terms_after'].get('silhouette_bias_px', np.nan):+.3f}px rr {rr:.4f} {'kept' if kept else 'REJECTED ' + result.report.get('kept_why', '')} "
                   f"{seconds:.1f}s", flush=True)
     # ratios of the means, as docs/results.md and issue 25's bars use them
     print("\nmeans: CD/hull CDN/hull CD CDN Metro | worst IoU | kept | seconds | rerender")

@@ -37,7 +37,7 @@ ds = TransparentSceneDataset(sys.argv[1], "test", views=10)
 normal_net, point_net = load_normal_net(shipped_weights(10)[0]), load_point_net(shipped_weights(10, "points")[0])
 for i in map(int, sys.argv[2].split(",")):
     capture, hull, truth = ds.capture(i), ds.hull(i), ds.meshes(i)[0]
-    normals = run_normal_stage(capture, hull, normal_net, None)
+    normals = run_normal_stage(capture, hull.mesh, normal_net, None)
     mesh, _ = surface_from_normals(hull, normals.maps, SurfaceConfig(), point_net)
     m = shape_metrics(mesh, truth)
     print(i, "surface", round(m["cd"], 2), round(m["cdn_mean"], 2),

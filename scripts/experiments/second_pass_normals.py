@@ -3,7 +3,7 @@ normal term toward what it predicts. Fed the refined mesh, the network's correct
 that mesh (sessions 40-41: trust decided against the hull cannot say where to beat the mesh).
 
 Usage, after `lookingglass validate --data data/val480 --out runs/val480`:
-    .venv/bin/python scripts/experiments/second_pass_normals.py data/val480 runs/val480 duck,mug 8 evidence|all|better [iterations] [nolatent]
+    .venv/bin/python scripts/experiments/second_pass_normals.py data/val480 runs/val480 duck,mug 16 gain|all|better [iterations] [nolatent] [gain=2]
 Per scene: CD, CDN-mean and the re-rendering error of the refined mesh (mesh.ply) and of the second pass,
 which the refine stage keeps or rejects as it does its own result.
 """
@@ -26,22 +26,17 @@ outer = int(sys.argv[6]) if len(sys.argv) > 6 else 0
 cfg = PipelineConfig()
 latent = None if "nolatent" in sys.argv[7:] else cfg.normals.latent
 angle = lambda a, b: torch.rad2deg(torch.acos((a * b).sum(-1).clamp(-1, 1)))  # noqa: E731
-default_of = refine_mod._NormalTarget.of.__func__
 totals = []
 for name in sys.argv[3].split(","):
     cap = load_capture(root / name / "scene"); gt = load_mesh(root / name / "ground_truth.ply")
     hull = carve_visual_hull(cap.masks, cap.cameras, cfg.hull)
     mesh = load_mesh(out / name / "mesh.ply")
-    stage = run_normal_stage(cap, types.SimpleNamespace(mesh=mesh), load_normal_net(shipped_weights(cap.num_views)[0]),
+    stage = run_normal_stage(cap, mesh, load_normal_net(shipped_weights(cap.num_views)[0]),
                              latent)
     x, maps = stage.inputs, stage.maps
     share = {}
 
-    def rule_of(cls, stage, hull, vertices, faces, blur):
-        if rule == "evidence":
-            target = default_of(cls, stage, hull, vertices, faces, blur)
-            share["trusted"] = float((target.weight > 0).float().mean())
-            return target
+    def rule_of(cls, stage, hull, vertices, faces, trust_gain):
         cams = hull.cameras_normalized(x.cameras.to(device="cpu")).to(dtype=torch.float32)
         with torch.no_grad():
             tb = mesh_two_bounce(torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces, dtype=torch.long),
@@ -52,14 +47,17 @@ for name in sys.argv[3].split(","):
             valid &= truth.mask & (angle(maps.n1, truth.normal1) < angle(tb.normal1, truth.normal1)) \
                 & (angle(maps.n2, truth.normal2) < angle(tb.normal2, truth.normal2))
         share["trusted"] = float(valid.float().mean())
-        return cls(cams, maps.n1.float(), maps.n2.float(), valid.float(), float(x.ior))
+        return cls.from_maps(cams, maps.n1.float(), maps.n2.float(), valid, float(x.ior))
 
-    refine_mod._NormalTarget.of = classmethod(rule_of)
-    rc = dataclasses.replace(cfg.refine, normal_iterations=steps, iterations=outer)
+    gain = next((float(a.split("=", 1)[1]) for a in sys.argv[7:] if a.startswith("gain=")), 2.0)
+    if rule != "gain":  # else the refine stage's own rule: the gain head's gain over the mesh fed
+        refine_mod._NormalTarget.of = classmethod(rule_of)
+    rc = dataclasses.replace(cfg.refine, normal_iterations=steps, iterations=outer, normal_trust_gain=gain)
     r = refine_mod.refine_surface(mesh, hull, cap.masks, cap.cameras, rc, capture=cap, normals=stage)
     m0, m1 = shape_metrics(mesh, gt), shape_metrics(r.refined, gt)
     rr = r.report["rerender_error"]
     totals.append((m0["cd"], m1["cd"], m0["cdn_mean"], m1["cdn_mean"], rr[0], rr[1], r.report["kept"] == "refined"))
+    share.setdefault("trusted", r.report.get("normal_term", {}).get("trusted_share", 0))
     print(f"{name} trusted {share.get('trusted', 0):.3f} | mesh CD {m0['cd']:.2f} CDN-mean {m0['cdn_mean']:.2f} "
           f"rerender {rr[0]:.4f} | second pass CD {m1['cd']:.2f} CDN-mean {m1['cdn_mean']:.2f} rerender {rr[1]:.4f} "
           f"iou {min(r.report['silhouette_iou_after']):.3f} kept {r.report['kept']} "
