@@ -37,7 +37,7 @@ from .errors import LookingGlassError, LookingGlassWarning
 from .fileio import staged_dir, write_atomic, write_json
 from .hull import VisualHull, carve_visual_hull
 from .ior import MIN_CONTRAST, RELIABLE_MIN_WIDTH, assumed_ior, estimate_ior
-from .normals.stage import NormalStageResult, run_normal_stage, write_normal_views
+from .normals.stage import NormalStageResult, run_normal_stage, second_pass, write_normal_views
 from .points.stage import surface_from_normals
 from .progress import Reporter, peak_memory_mb
 from .refine import RefineResult, refine_surface
@@ -192,8 +192,7 @@ def _refine(capture, hull: VisualHull, surface: trimesh.Trimesh, weights: Normal
     with reporter.stage("refine", "refine (silhouettes + smoothness + the normal net's second pass)") as rec:
         write_mesh(out_dir / "surface.ply", surface)
         result = refine_surface(surface, hull, capture.masks, capture.cameras, config.refine, capture=capture,
-                                normals=lambda mesh: run_normal_stage(capture, mesh, weights, config.normals.latent,
-                                                                      config.device))
+                                normals=second_pass(capture, weights, config.device))
         views = sorted(set(np.linspace(0, capture.num_views - 1, min(4, capture.num_views)).round().astype(int)))
         silhouette_sheet(out_dir / "refine.png", capture.images, capture.masks, result.casts, views,
                          result.rerendering)

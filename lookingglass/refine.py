@@ -537,20 +537,22 @@ def _descend(x: np.ndarray, x0: np.ndarray, faces: np.ndarray, target, precondit
     gradient smoothed by `precondition` (the silhouette solve's own system, so the step is smooth
     and keeps the rims on their masks), scaled so its 99th-percentile vertex moves `step`, then
     halved until the loss falls (the step length carries over). Returns the vertices and the loss
-    before each step."""
+    before each step and after the last."""
     losses = []
+    value, g = target.loss(x, faces, grad=True)
     for _ in range(iterations):
-        value, g = target.loss(x, faces, grad=True)
         losses.append(value)
         d = -precondition(g)
         d /= max(float(np.percentile(np.linalg.norm(d, axis=1), 99)), 1e-12)
         while step > 1e-4:
             proposed = _unfolded(x0, x, x + step * d, faces)
-            if target.loss(proposed, faces)[0] < value:
-                x = proposed
+            # each trial carries its gradient: an accepted one is the next step's (one cast a step fewer)
+            trial, trial_g = target.loss(proposed, faces, grad=True)
+            if trial < value:
+                x, value, g = proposed, trial, trial_g
                 break
             step /= 2
-    return x, losses
+    return x, losses + [value]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -673,7 +675,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         apply, diag = system(_constraints(x, faces, s, g, cams, weights, config, w_sil).M)
         x, losses = _descend(x, x0, faces, target, lambda r: _pcg(apply, r, diag, config.cg_iterations),
                              step * config.edge_length, iterations)
-        return losses + [target.loss(x, faces)[0]]
+        return losses
 
     mean_w = lambda a: float((a * weights).sum() / max(weights.sum(), 1e-12))  # noqa: E731
     prepared = photos_at(capture, config.rerender_width) if capture is not None and config.rerender_width > 0 else None

@@ -1,6 +1,7 @@
 """The `normals` stage: hull two-bounce maps -> NNet (+ cost volume) -> latent optimization.
 
-`run_normal_stage` is what `reconstruct` and `eval-shapes` run on a capture and its hull;
+`run_normal_stage` is what `reconstruct` and `eval-shapes` run on a capture and its hull, and
+`second_pass` what their refine stage runs on its own mesh;
 `write_normal_views` writes its per-view files (called by the pipeline, which owns the output
 folder):
 OUT/normals/view_XX.npz (n1, n2 camera frame float32 (H,W,3); mask, tir bool (H,W);
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -71,6 +73,13 @@ def run_normal_stage(capture, mesh: trimesh.Trimesh, weights: NormalWeights, lat
               "render_error_vh": hull_maps.render_error(), "render_error": maps.render_error(),
               "latent_iterations": steps}
     return NormalStageResult(x, maps, hull_maps, report)
+
+
+def second_pass(capture, weights: NormalWeights, device: str = "cpu") -> Callable[[trimesh.Trimesh], NormalStageResult]:
+    """The refine stage's normal term's source: the normal stage on a mesh the refine stage hands
+    it, without latent optimization (on val480 it changes the refined mesh by under 1%, CD 5.04 vs
+    5.05, and costs ~6 s; docs/history.md, session 43)."""
+    return lambda mesh: run_normal_stage(capture, mesh, weights, None, device)
 
 
 def write_normal_views(folder: Path, result: NormalStageResult) -> None:

@@ -26,7 +26,7 @@ from ..metrics import shape_metrics
 from ..hull import VisualHull
 from ..normals.latent import LatentOptConfig
 from ..normals.predict import NormalMaps
-from ..normals.stage import run_normal_stage
+from ..normals.stage import run_normal_stage, second_pass
 from ..parallel import map_scenes
 from ..progress import Reporter
 from ..refine import RefineConfig, refine_surface, silhouette_iou
@@ -112,8 +112,7 @@ class _ShapeEvaluation:
                     hull, gt, maps, self.surface, self.point_net, lambda m, g: self._scored(m, g, capture))
                 if mesh is not None and self.refine is not None:  # as reconstruct's refine stage, on that surface
                     refined = refine_surface(mesh, hull, capture.masks, capture.cameras, self.refine, capture=capture,
-                                             normals=lambda m: run_normal_stage(capture, m, self.weights, self.latent,
-                                                                                self.device))
+                                             normals=second_pass(capture, self.weights, self.device))
                     record["refined"] = {**self._scored(refined.mesh, gt, capture), "kept": refined.report["kept"]}
         return record
 

@@ -5,6 +5,7 @@ view's silhouette IoU, whether `reconstruct`'s keep check keeps the refined mesh
 Usage, after `lookingglass validate --data DATA --out RUNS`:
     .venv/bin/python scripts/experiments/refine_val_variants.py DATA RUNS \\
         "default" "iterations=12" "iterations=24,silhouette_views=0" [--shapes duck,key] [--normals W|shipped|none]
+        [--second-pass-latent none|config]
 Each variant is "default" or comma-separated RefineConfig fields (key=value) over the defaults. The refine
 stage's normal term runs as in `reconstruct`: the normal net (--normals: a weights.safetensors, by default the
 shipped one for the view count; "none": no normal term) run again on the mesh the silhouette iterations leave.
@@ -44,6 +45,8 @@ def main() -> None:
     parser.add_argument("--shapes", default="")
     parser.add_argument("--normals", default="shipped", help="the normal net of the normal term's second pass "
                         "(shipped: the capture's view count's; none: no normal term)")
+    parser.add_argument("--second-pass-latent", choices=["none", "config"], default="none",
+                        help="the second pass's latent optimization: none (as reconstruct) or the normal stage's")
     args = parser.parse_args()
     warnings.simplefilter("ignore")
     data, runs = Path(args.data), Path(args.runs)
@@ -60,7 +63,8 @@ def main() -> None:
         if args.normals != "none":  # as reconstruct: the net run again on the mesh the silhouettes leave
             path = shipped_weights(capture.num_views)[0] if args.normals == "shipped" else args.normals
             net = load_normal_net(path)
-            stage = lambda mesh, c=capture, n=net: run_normal_stage(c, mesh, n, config.normals.latent)  # noqa: E731
+            latent = config.normals.latent if args.second_pass_latent == "config" else None
+            stage = lambda mesh, c=capture, n=net, l=latent: run_normal_stage(c, mesh, n, l)  # noqa: E731
         h, s = shape_metrics(hull.mesh, gt), shape_metrics(surface, gt)
         print(f"{name:15s} hull    CD {h['cd']:6.2f} CDN {h['cdn_mean']:6.2f} metro {h['metro']:6.2f} | "
               f"surface CD {s['cd']:6.2f} CDN {s['cdn_mean']:6.2f}", flush=True)
