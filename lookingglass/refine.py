@@ -78,7 +78,7 @@ from .normals.render_layer import comparable, render_layer
 from .physics.camera import Cameras
 from .physics.environment import EnvironmentMap
 from .render.compare import RERENDER_WIDTH, Rerendering, photos_at, rerender
-from .render.differentiable import mesh_caster, mesh_two_bounce, rays_two_bounce, vertex_normals_t
+from .render.differentiable import MeshTwoBounce, mesh_caster, mesh_two_bounce, rays_two_bounce, vertex_normals_t
 from .render.raycast import RayCaster, object_masks
 
 
@@ -493,16 +493,24 @@ class _NormalTarget:
         inputs, maps = stage.inputs, stage.maps.to("cpu")
         if maps.predicted_gain is None:
             raise ValueError("the normal term needs a normal net with a gain head")
-        cams = hull.cameras_normalized(inputs.cameras.to(device="cpu")).to(dtype=torch.float32)
+        cams, tb = cls.mesh_seen(stage, hull, vertices, faces)
         with torch.no_grad():
-            tb = mesh_two_bounce(torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces, dtype=torch.long),
-                                 cams, ior=inputs.ior)
             trusted = inputs.mask.cpu() & tb.valid & ~maps.tir
             for k, (mesh_n, fed_n) in enumerate(((tb.normal1, inputs.vh_n1), (tb.normal2, inputs.vh_n2))):
                 turned = torch.rad2deg(torch.acos((mesh_n * fed_n.cpu()).sum(-1).clamp(-1, 1)))
                 trusted &= maps.predicted_gain[..., k] - turned > trust_gain
         return cls.from_maps(cams, maps.n1.float(), maps.n2.float(), trusted, float(inputs.ior),
                              float(trusted.sum() / max(float(inputs.mask.sum()), 1)))
+
+    @staticmethod
+    def mesh_seen(stage, hull: VisualHull, vertices: np.ndarray, faces: np.ndarray) -> tuple[Cameras, MeshTwoBounce]:
+        """The network's cameras in the refine stage's normalized frame, and the two-bounce normals
+        of the mesh (vertices in that frame) at their pixels (no gradient)."""
+        inputs = stage.inputs
+        cams = hull.cameras_normalized(inputs.cameras.to(device="cpu")).to(dtype=torch.float32)
+        with torch.no_grad():
+            return cams, mesh_two_bounce(torch.as_tensor(vertices, dtype=torch.float32),
+                                         torch.as_tensor(faces, dtype=torch.long), cams, ior=inputs.ior)
 
     @classmethod
     def from_maps(cls, cams: Cameras, n1: torch.Tensor, n2: torch.Tensor, trusted: torch.Tensor, ior: float,

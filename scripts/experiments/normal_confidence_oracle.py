@@ -11,14 +11,9 @@ import sys, dataclasses, warnings, types
 import numpy as np, torch
 from pathlib import Path
 import lookingglass.refine as refine_mod
-from lookingglass.capture.scene import load_capture
-from lookingglass.metrics import load_mesh, shape_metrics
-from lookingglass.hull import carve_visual_hull
+from lookingglass.metrics import shape_metrics
 from lookingglass.config import PipelineConfig
-from lookingglass.normals.stage import run_normal_stage
-from lookingglass.render.differentiable import mesh_two_bounce
-from lookingglass.render.tracer import trace_two_bounce
-from lookingglass.weights import load_normal_net, shipped_weights
+from hull_fed_scene import hull_fed_scene
 warnings.simplefilter("ignore")
 root, out = Path(sys.argv[1]), Path(sys.argv[2])
 iterations = int(sys.argv[4])
@@ -27,20 +22,12 @@ rule = sys.argv[6] if len(sys.argv) > 6 else "better"
 cfg = PipelineConfig()
 angle = lambda a, b: torch.rad2deg(torch.acos((a * b).sum(-1).clamp(-1, 1)))  # noqa: E731
 for name in sys.argv[3].split(","):
-    cap = load_capture(root / name / "scene"); gt = load_mesh(root / name / "ground_truth.ply")
-    hull = carve_visual_hull(cap.masks, cap.cameras, cfg.hull)
-    weights = load_normal_net(shipped_weights(cap.num_views)[0])
-    stage = run_normal_stage(cap, hull.mesh, weights, cfg.normals.latent)
-    x, maps = stage.inputs, stage.maps
-    truth = trace_two_bounce(gt, x.cameras, ior=cap.ior)
-    surf = load_mesh(out / name / "surface.ply")
+    sc = hull_fed_scene(root, out, name, cfg)
+    cap, gt, hull, stage, x, maps, truth, surf = sc.cap, sc.gt, sc.hull, sc.stage, sc.x, sc.maps, sc.truth, sc.surf
     share = {}
 
     def oracle_of(cls, stage, hull, vertices, faces, trust_gain):
-        cams = hull.cameras_normalized(x.cameras.to(device="cpu")).to(dtype=torch.float32)
-        with torch.no_grad():
-            tb = mesh_two_bounce(torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces, dtype=torch.long),
-                                 cams, ior=x.ior)
+        cams, tb = cls.mesh_seen(stage, hull, vertices, faces)
         valid = x.mask.cpu() & tb.valid & truth.mask & ~maps.tir
         # the camera-frame normals of the mesh, the prediction and the truth at the same pixels
         if rule == "better":  # the prediction closer to the truth than the mesh

@@ -14,16 +14,12 @@ import sys, dataclasses, warnings
 import numpy as np, torch, trimesh
 from pathlib import Path
 import lookingglass.refine as refine_mod
-from lookingglass.capture.scene import load_capture
-from lookingglass.metrics import load_mesh, shape_metrics
-from lookingglass.hull import carve_visual_hull
+from lookingglass.metrics import shape_metrics
 from lookingglass.config import PipelineConfig
-from lookingglass.normals.stage import run_normal_stage
 from lookingglass.physics.optics import IOR_AIR, interface
-from lookingglass.render.differentiable import mesh_two_bounce, vertex_normals_t
+from lookingglass.render.differentiable import vertex_normals_t
 from lookingglass.render.raycast import RayCaster
-from lookingglass.render.tracer import trace_two_bounce
-from lookingglass.weights import load_normal_net, shipped_weights
+from hull_fed_scene import hull_fed_scene
 warnings.simplefilter("ignore")
 root, out = Path(sys.argv[1]), Path(sys.argv[2])
 iterations = int(sys.argv[4])
@@ -80,20 +76,12 @@ def fuse(vert, normals_world, n_vertices, average):
 
 
 for name in sys.argv[3].split(","):
-    cap = load_capture(root / name / "scene"); gt = load_mesh(root / name / "ground_truth.ply")
-    hull = carve_visual_hull(cap.masks, cap.cameras, cfg.hull)
-    weights = load_normal_net(shipped_weights(cap.num_views)[0])
-    stage = run_normal_stage(cap, hull.mesh, weights, cfg.normals.latent)
-    x, maps = stage.inputs, stage.maps
-    truth = trace_two_bounce(gt, x.cameras, ior=cap.ior)
-    surf = load_mesh(out / name / "surface.ply")
+    sc = hull_fed_scene(root, out, name, cfg)
+    cap, gt, hull, stage, x, maps, truth, surf = sc.cap, sc.gt, sc.hull, sc.stage, sc.x, sc.maps, sc.truth, sc.surf
     info = {}
 
     def consistency_of(cls, stage, hull, vertices, faces, trust_gain):
-        cams = hull.cameras_normalized(x.cameras.to(device="cpu")).to(dtype=torch.float32)
-        with torch.no_grad():
-            tb = mesh_two_bounce(torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces, dtype=torch.long),
-                                 cams, ior=x.ior)
+        cams, tb = cls.mesh_seen(stage, hull, vertices, faces)
         cams64 = cams.to(dtype=torch.float64)
         vert1, vert2 = hit_vertices(vertices, faces, cams64, x.ior)
         average = sp_average(faces, len(vertices))

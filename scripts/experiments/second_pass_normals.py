@@ -16,7 +16,6 @@ from lookingglass.metrics import load_mesh, shape_metrics
 from lookingglass.hull import carve_visual_hull
 from lookingglass.config import PipelineConfig
 from lookingglass.normals.stage import run_normal_stage
-from lookingglass.render.differentiable import mesh_two_bounce
 from lookingglass.render.tracer import trace_two_bounce
 from lookingglass.weights import load_normal_net, shipped_weights
 warnings.simplefilter("ignore")
@@ -37,10 +36,7 @@ for name in sys.argv[3].split(","):
     share = {}
 
     def rule_of(cls, stage, hull, vertices, faces, trust_gain):
-        cams = hull.cameras_normalized(x.cameras.to(device="cpu")).to(dtype=torch.float32)
-        with torch.no_grad():
-            tb = mesh_two_bounce(torch.as_tensor(vertices, dtype=torch.float32), torch.as_tensor(faces, dtype=torch.long),
-                                 cams, ior=x.ior)
+        cams, tb = cls.mesh_seen(stage, hull, vertices, faces)
         valid = x.mask.cpu() & tb.valid & ~maps.tir
         if rule == "better":  # an oracle: where the ground truth says the second pass beats the mesh at both hits
             truth = trace_two_bounce(gt, x.cameras, ior=cap.ior)
