@@ -49,7 +49,7 @@ The normal term (`normal_iterations`) descends the misfit between the mesh's two
 (render/differentiable.py) and the normal network's N1/N2 from a second pass: after the silhouette
 iterations the network is run again, fed this mesh in place of the hull, and its gain head says per
 pixel how many degrees closer to the truth its normals are than the mesh's; the term follows them
-where both gains exceed `normal_trust_gain` (2-5% of the pixels on the validation set), and its
+where both gains exceed `normal_trust_gain` (1-46% of the masked pixels on the validation set), and its
 result stays only if it re-renders no worse against the photos. Fed the hull, the same head (or the
 rendering error) cannot say where the prediction beats a mesh the stage has already made better
 than the hull: that made smooth shapes worse (docs/history.md, sessions 40-42). With true normals
@@ -516,7 +516,7 @@ class _NormalTarget:
     def from_maps(cls, cams: Cameras, n1: torch.Tensor, n2: torch.Tensor, trusted: torch.Tensor, ior: float,
                   share: float | None = None) -> "_NormalTarget":
         """The target at the `trusted` (V, h, w) pixels of camera-frame maps n1, n2 (V, h, w, 3):
-        only those pixels' rays are cast again at every step (2-15% of them on the validation set),
+        only those pixels' rays are cast again at every step (1-46% of the masks' on the validation set),
         against world-frame targets (the misfit's dot products do not depend on the frame)."""
         origins, dirs = cams.pixel_rays()
         pick = trusted.reshape(-1).bool()
@@ -609,9 +609,10 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     view counts fully). capture: the loaded capture (photos, environment map, ior) for the
     re-rendering check and the photometric term (both skipped without). normals: for the normal
     term, a function that runs the normal stage (`run_normal_stage`) on a mesh in the capture frame
-    (called once, on the mesh after the silhouette iterations: the second pass), or a
-    `NormalStageResult` made elsewhere; the term is skipped without, or when the net has no gain
-    head. Returns the kept mesh (the better of the refined one and the input) and the report. Warns (warnings.warn) for every down-weighted view."""
+    (called once, on the mesh after the silhouette iterations: the second pass; it returns None
+    for a net without a gain head), or a `NormalStageResult` made elsewhere; the term is skipped
+    without, or when the net has no gain head. Returns the kept mesh (the better of the refined one
+    and the input) and the report. Warns (warnings.warn) for every down-weighted view."""
     config = config or RefineConfig()
     start_time = time.perf_counter()
     masks = np.asarray(masks, bool)
@@ -694,7 +695,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         current = lambda: trimesh.Trimesh(hull.denormalize_points(x), faces, process=False)  # noqa: E731
         # the second pass: the network fed this mesh, so that its gain head's gains are over it
         stage = normals(current()) if callable(normals) else normals
-        if stage.maps.predicted_gain is None:
+        if stage is None or stage.maps.predicted_gain is None:
             normal_report = {"skipped": "the normal net has no gain head"}
         else:
             before_term = x.copy()

@@ -75,10 +75,14 @@ def run_normal_stage(capture, mesh: trimesh.Trimesh, weights: NormalWeights, lat
     return NormalStageResult(x, maps, hull_maps, report)
 
 
-def second_pass(capture, weights: NormalWeights, device: str = "cpu") -> Callable[[trimesh.Trimesh], NormalStageResult]:
+def second_pass(capture, weights: NormalWeights,
+                device: str = "cpu") -> Callable[[trimesh.Trimesh], NormalStageResult | None]:
     """The refine stage's normal term's source: the normal stage on a mesh the refine stage hands
     it, without latent optimization (on val480 it changes the refined mesh by under 1%, CD 5.04 vs
-    5.05, and costs ~6 s; docs/history.md, session 43)."""
+    5.05, and costs ~6 s; docs/history.md, session 43). None, without running the net, when the
+    net has no gain head (the term cannot tell where to trust it)."""
+    if not weights.net.cfg.gain_head:
+        return lambda mesh: None
     return lambda mesh: run_normal_stage(capture, mesh, weights, None, device)
 
 

@@ -4,8 +4,9 @@ and the worst view's silhouette IoU; "kept" says whether `reconstruct`'s keep ch
 
 Usage: .venv/bin/python scripts/experiments/refine_variants.py DATA 1,2,3,4,5,6 [VARIANT ...]
 (DATA/test a split made by `lookingglass generate --split test`; the shipped 10-view weights.) A VARIANT is
-"default" or comma-separated RefineConfig fields over the defaults ("iterations=12,fair_weight=25"); without any,
-the silhouette weights of the 2026-11-25 measurement.
+"default" or comma-separated RefineConfig fields over the defaults ("iterations=12,fair_weight=25";
+"normal_iterations=0": without the normal term, which otherwise runs as in `reconstruct`); without any, the
+silhouette weights of the 2026-11-25 measurement.
 """
 import dataclasses
 import sys
@@ -16,7 +17,7 @@ import torch
 
 from lookingglass.data.torch_dataset import TransparentSceneDataset
 from lookingglass.metrics import shape_metrics
-from lookingglass.normals.stage import run_normal_stage
+from lookingglass.normals.stage import run_normal_stage, second_pass
 from lookingglass.points.stage import SurfaceConfig, surface_from_normals
 from lookingglass.refine import RefineConfig, refine_surface, silhouette_iou
 from lookingglass.weights import load_normal_net, load_point_net, shipped_weights
@@ -43,7 +44,10 @@ for i in map(int, sys.argv[2].split(",")):
     print(i, "surface", round(m["cd"], 2), round(m["cdn_mean"], 2),
           round(float(silhouette_iou(mesh, capture.cameras, capture.masks).min()), 3), flush=True)
     for name, settings in VARIANTS.items():
-        result = refine_surface(mesh, hull, capture.masks, capture.cameras, RefineConfig(**settings), capture=capture)
+        result = refine_surface(mesh, hull, capture.masks, capture.cameras, RefineConfig(**settings), capture=capture,
+                                normals=second_pass(capture, normal_net))
         m = shape_metrics(result.refined, truth)
+        term = result.report.get("normal_term", {})
         print(i, name, "kept" if result.report["kept"] == "refined" else "rejected", round(m["cd"], 2),
-              round(m["cdn_mean"], 2), round(min(result.report["silhouette_iou_after"]), 3), flush=True)
+              round(m["cdn_mean"], 2), round(min(result.report["silhouette_iou_after"]), 3),
+              "term", term.get("trusted_share"), term.get("kept"), flush=True)
