@@ -200,7 +200,7 @@ def local_thickness(vertices: np.ndarray, faces: np.ndarray, smoothing: int = 3)
     """(N,) each vertex's shape diameter: the distance along its inward normal to the far side of the
     closed mesh (10 where the ray escapes), averaged over the neighbourhood (`smoothing` rounds, in
     the log) so that one stray ray does not set a vertex's value."""
-    caster = RayCaster(trimesh.Trimesh(vertices, faces, process=False))
+    caster = RayCaster.of(vertices, faces)
     t = caster.intersect(vertices, -caster.vertex_normals, offset=True).t
     t = np.log(np.clip(t, 1e-4, 10.0))
     average = sp.identity(len(vertices), format="csr") - uniform_laplacian(faces, len(vertices))
@@ -276,7 +276,7 @@ def rim_vertices(vertices: np.ndarray, faces: np.ndarray, cams: Cameras, candida
     """(V, N) bool: the candidates (V, N) that lie on the outer boundary of the mesh's silhouette in
     their view: the ray through the point one pixel outside the vertex (along its normal, in the
     plane perpendicular to the ray) misses the mesh. Inner folds and occluded contour vertices fail."""
-    caster = RayCaster(trimesh.Trimesh(vertices, faces, process=False))
+    caster = RayCaster.of(vertices, faces)
     normals = vertex_normals_t(torch.as_tensor(vertices), torch.as_tensor(faces)).numpy()
     origins = cams.origin.double().numpy()
     pitch = 2 * cams.tan_half_fov_x.double().numpy() / cams.width  # pixel size per unit depth
@@ -709,16 +709,14 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
                 # the gain head is a weak signal on some shapes (the key, session 42): the term's
                 # result stays only where it explains the photos no worse than the mesh before it
                 with_term = rerender(current(), capture, prepared=prepared)
-                x, x_term = before_term, x
-                without = rerender(current(), capture, prepared=prepared)
+                without = rerender(trimesh.Trimesh(hull.denormalize_points(before_term), faces, process=False),
+                                   capture, prepared=prepared)
                 e_without, e_with = mean_w(without.error), mean_w(with_term.error)
                 normal_report["rerender_error"] = [round(e_without, 4), round(e_with, 4)]
-                if e_with > e_without * (1 + RERENDER_TOLERANCE):
-                    normal_report["kept"] = False
-                    rerendered["refined"] = without
-                else:
-                    x = x_term
-                    rerendered["refined"] = with_term
+                kept = e_with <= e_without * (1 + RERENDER_TOLERANCE)
+                normal_report["kept"] = kept
+                x = x if kept else before_term
+                rerendered["refined"] = with_term if kept else without
         timings["normals"] = time.perf_counter() - t_normals
     photo_losses: list[float] = []
     if config.photometric_iterations and capture is not None:

@@ -95,9 +95,7 @@ def rays_two_bounce(vertices: Tensor, faces: Tensor, origins: Tensor, dirs: Tens
 
 def mesh_caster(vertices: Tensor, faces: Tensor) -> RayCaster:
     """An Embree scene of the mesh (vertices (N, 3), faces (F, 3) long) as it is now."""
-    import trimesh
-
-    return RayCaster(trimesh.Trimesh(vertices.detach().cpu().numpy(), faces.cpu().numpy(), process=False))
+    return RayCaster.of(vertices.detach().cpu().numpy(), faces.cpu().numpy())
 
 
 def mesh_two_bounce(vertices: Tensor, faces: Tensor, cameras: Cameras, caster: RayCaster | None = None,

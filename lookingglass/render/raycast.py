@@ -44,6 +44,11 @@ class RayCaster:
         # Secondary rays start this far along their direction so they don't re-hit their origin.
         self.epsilon = 1e-5 * float(np.linalg.norm(mesh.extents))
 
+    @classmethod
+    def of(cls, vertices: np.ndarray, faces: np.ndarray) -> "RayCaster":
+        """The scene of a mesh given as arrays (kept as given: no merging or reordering)."""
+        return cls(trimesh.Trimesh(vertices, faces, process=False))
+
     # computed on first use: a third of the build's time, and the refine stage's differentiable
     # casts (intersect_raw, dozens of fresh scenes a run) never read them
     @cached_property

@@ -11,7 +11,7 @@ Per scene: how well the spread tells where the fused prediction beats the mesh (
 then CD, CDN-mean of the refined mesh without the term and with it.
 """
 import sys, dataclasses, warnings
-import numpy as np, torch, trimesh
+import numpy as np, torch
 from pathlib import Path
 import lookingglass.refine as refine_mod
 from lookingglass.metrics import shape_metrics
@@ -33,7 +33,7 @@ angle = lambda a, b: torch.rad2deg(torch.acos((a * b).sum(-1).clamp(-1, 1)))  # 
 
 def hit_vertices(vertices, faces, cams, ior):
     """(V, H, W) long: the vertex nearest each pixel's first hit and second hit (-1 where none)."""
-    caster = RayCaster(trimesh.Trimesh(vertices, faces, process=False))
+    caster = RayCaster.of(vertices, faces)
     o, d = cams.pixel_rays()
     o, d = o.reshape(-1, 3).double(), d.reshape(-1, 3).double()
     t1, f1, u1, v1 = caster.intersect_raw(o.numpy(), d.numpy())
