@@ -326,12 +326,54 @@ def view_weights(coverage: np.ndarray, config: RefineConfig) -> np.ndarray:
 # The linear solve
 # ---------------------------------------------------------------------------------------------
 
-def _pcg(apply, rhs: np.ndarray, diag: np.ndarray, iterations: int, tol: float = 1e-5) -> np.ndarray:
+def _torch_csr(matrix: sp.spmatrix) -> torch.Tensor:
+    """A scipy sparse matrix as a float64 torch CSR tensor (torch's sparse products use every core
+    its pool has: ~3x scipy's single-threaded ones on this 2-core machine)."""
+    csr = sp.csr_matrix(matrix)
+    return torch.sparse_csr_tensor(torch.as_tensor(csr.indptr, dtype=torch.int64),
+                                   torch.as_tensor(csr.indices, dtype=torch.int64),
+                                   torch.as_tensor(csr.data, dtype=torch.float64), size=csr.shape)
+
+
+class _Solver:
+    """The linear system of the silhouette solves (and the descents' preconditioner):
+    (M + L^T C L + c I) d = rhs, d and rhs (N, 3), M (N, 3, 3) the constraints' blocks (non-zero at
+    the constrained vertices only), C = diag(c_lap) the Laplacian rows' weights, c the damping and
+    anchor weights. Jacobi-preconditioned conjugate gradients, at most `iterations` of them."""
+
+    def __init__(self, lap: sp.csr_matrix, c_lap: np.ndarray, c_diag: float, iterations: int):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # torch: sparse CSR is "beta"
+            self.lap, self.lap_t = _torch_csr(lap), _torch_csr(lap.T)
+        self.c_lap = torch.as_tensor(c_lap, dtype=torch.float64)[:, None]
+        self.c_diag = float(c_diag)
+        # the diagonal of L^T C L + c I, the same for the three coordinates
+        self.base_diag = (torch.as_tensor(lap.multiply(lap).T @ c_lap, dtype=torch.float64) + self.c_diag)[:, None]
+        self.iterations = iterations
+
+    def operator(self, M: np.ndarray):
+        """solve(rhs) -> d (numpy, (N, 3)) for the system with constraint blocks M."""
+        rows = np.flatnonzero(np.abs(M).reshape(len(M), 9).max(axis=1) > 0)
+        blocks, rows_t = torch.as_tensor(M[rows]), torch.as_tensor(rows)
+        diag = self.base_diag.repeat(1, 3)
+        diag[rows_t] += torch.diagonal(blocks, dim1=1, dim2=2)
+
+        def apply(d: torch.Tensor) -> torch.Tensor:
+            out = self.lap_t @ (self.c_lap * (self.lap @ d))
+            out.add_(d, alpha=self.c_diag)
+            return out.index_add_(0, rows_t, (blocks @ d[rows_t].unsqueeze(-1)).squeeze(-1))
+
+        def solve(rhs: np.ndarray) -> np.ndarray:
+            return _pcg(apply, torch.as_tensor(rhs, dtype=torch.float64), diag, self.iterations).numpy()
+        return solve
+
+
+def _pcg(apply, rhs: torch.Tensor, diag: torch.Tensor, iterations: int, tol: float = 1e-5) -> torch.Tensor:
     """Jacobi-preconditioned conjugate gradients for apply(x) = rhs, x and rhs (N, 3)."""
-    x = np.zeros_like(rhs)
-    r = rhs.copy()
+    x = torch.zeros_like(rhs)
+    r = rhs.clone()
     z = r / diag
-    p = z.copy()
+    p = z.clone()
     rz = float((r * z).sum())
     stop = tol * tol * float((rhs * rhs).sum())
     for _ in range(iterations):
@@ -339,11 +381,11 @@ def _pcg(apply, rhs: np.ndarray, diag: np.ndarray, iterations: int, tol: float =
             break
         ap = apply(p)
         alpha = rz / max(float((p * ap).sum()), 1e-300)
-        x += alpha * p
-        r -= alpha * ap
+        x.add_(p, alpha=alpha)
+        r.sub_(ap, alpha=alpha)
         z = r / diag
         rz_new = float((r * z).sum())
-        p = z + (rz_new / max(rz, 1e-300)) * p
+        p.mul_(rz_new / max(rz, 1e-300)).add_(z)
         rz = rz_new
     return x
 
@@ -650,19 +692,10 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     fair_share = np.ones(len(x0))
     if config.fair_thickness > 0:
         fair_share = np.minimum(1.0, (local_thickness(x0, faces) / config.fair_thickness) ** 2)
-    lap_sq_t = lap.multiply(lap).T.tocsr()
     c_diag = config.damping + config.anchor_weight
     x = x0.copy()
     history = []
-
-    def system(M: np.ndarray):
-        """The linear system of one solve, given the constraints' blocks M (N, 3, 3): the operator
-        and its diagonal (the preconditioner)."""
-        def apply(d: np.ndarray) -> np.ndarray:
-            return np.einsum("nij,nj->ni", M, d) + lap_t @ (c_lap[:, None] * (lap @ d)) + c_diag * d
-        return apply, np.einsum("nii->ni", M) + (lap_sq_t @ c_lap)[:, None] + c_diag  # diag of L^T C L
-
-    c_lap = w_smooth + w_fair * fair_share  # weight of each vertex's Laplacian row
+    solver = _Solver(lap, w_smooth + w_fair * fair_share, c_diag, config.cg_iterations)  # Laplacian rows' weights
 
     # the silhouette solves (each solves for the minimum of the quadratic terms, so one more after
     # the normal term undoes most of it: ellipsoid CDN-mean 1.8 -> 4.2 degrees, session 42)
@@ -672,8 +705,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         history.append({"rim": int(cons.rim.sum()), "outside": int(cons.outside.sum())})
         rhs = cons.b - lap_t @ (w_smooth * (lap @ (x - x0)) + (w_fair * fair_share)[:, None] * (lap @ x)) \
             - config.anchor_weight * (x - x0)
-        apply, diag = system(cons.M)
-        x = _unfolded(x0, x, x + _pcg(apply, rhs, diag, config.cg_iterations), faces)
+        x = _unfolded(x0, x, x + solver.operator(cons.M)(rhs), faces)
 
     def descend(target, step: float, iterations: int) -> list[float]:
         """Descend `target`'s loss from the current vertices (the photometric or the normal term),
@@ -681,9 +713,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         after the last."""
         nonlocal x
         s, g = field_values(fields, cams, x)
-        apply, diag = system(_constraints(x, faces, s, g, cams, weights, config, w_sil).M)
-        x, losses = _descend(x, x0, faces, target, lambda r: _pcg(apply, r, diag, config.cg_iterations),
-                             step * config.edge_length, iterations)
+        solve = solver.operator(_constraints(x, faces, s, g, cams, weights, config, w_sil).M)
+        x, losses = _descend(x, x0, faces, target, solve, step * config.edge_length, iterations)
         return losses
 
     mean_w = lambda a: float((a * weights).sum() / max(weights.sum(), 1e-12))  # noqa: E731
