@@ -28,7 +28,7 @@ from .fileio import sha256_file, write_json
 from .metrics import load_mesh, normal_angle_errors, shape_metrics
 from .pipeline import reconstruct
 from .progress import Reporter
-from .render.compare import RERENDER_WIDTH, photos_at, rerender
+from .render.compare import RERENDER_SAMPLES, RERENDER_WIDTH, photos_at, rerender
 from .render.tracer import trace_two_bounce
 from .weights import WEIGHTS_DIR
 
@@ -129,10 +129,12 @@ def evaluate_validation_set(root, out, config: PipelineConfig | None = None, nam
         with torch.inference_mode():
             record.update(normal_errors(out / name, capture, gt, hull))
         # how well each mesh explains the photos (render/compare.py); the refine stage has already
-        # re-rendered its input (the surface) and its result, at the same seed (and, by default, width)
+        # re-rendered its input (the surface) and its result, at the same seed (and, by default, width
+        # and samples)
         views = (refine or {}).get("rerender_error_views")
         prepared = photos_at(capture, RERENDER_WIDTH)
-        if views is not None and config.refine.rerender_width == RERENDER_WIDTH:
+        if views is not None and (config.refine.rerender_width, config.refine.rerender_samples) == (
+                RERENDER_WIDTH, RERENDER_SAMPLES):
             record["surface"]["rerender"] = float(np.mean(views["input"]))
             record["mesh"]["rerender"] = float(np.mean(views["refined" if refine["kept"] == "refined" else "input"]))
         else:

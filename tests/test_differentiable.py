@@ -78,7 +78,7 @@ def test_rerender_scores_the_shape():
     same = rerender(mesh, capture, width=80)
     smaller = trimesh.Trimesh(mesh.vertices * 0.9, mesh.faces, process=False)
     assert same.error.shape == (5,)
-    assert same.mean_error < 0.03  # sampling noise only (3x3 vs 2x2 samples per pixel)
+    assert same.mean_error < 0.03  # sampling noise only (3x3 samples per pixel against the default 1)
     prepared = photos_at(capture, 80)  # several meshes against the same photos: prepared once
     assert rerender(smaller, capture, prepared=prepared).mean_error > 3 * same.mean_error
     assert np.array_equal(rerender(mesh, capture, prepared=prepared).error, same.error)

@@ -100,13 +100,15 @@ def gather(out_dir: Path, report: dict, capture, mesh: trimesh.Trimesh, hull: tr
            ground_truth: trimesh.Trimesh | None, metrics: dict | None, width: int, rendered=None) -> ReportData:
     """The report's content: re-renderings, per-view pictures, metrics and the 3D scene."""
     from ..metrics import normalization_transform, shape_metrics
-    from ..render.compare import rerender
+    from ..render.compare import RERENDER_SAMPLES, rerender
 
     same = hull is mesh
+    # the refine stage's samples per pixel, so that the hull's error reads like the mesh's it passed
+    samples = report.get("config", {}).get("refine", {}).get("rerender_samples") or RERENDER_SAMPLES
     if rendered is None or len(rendered.error) != capture.num_views:
-        rendered = rerender(mesh, capture, width=width)
+        rendered = rerender(mesh, capture, width=width, samples_per_axis=samples)
     width = rendered.photos.shape[2]
-    rendered_hull = None if same else rerender(hull, capture, width=width)
+    rendered_hull = None if same else rerender(hull, capture, width=width, samples_per_axis=samples)
     if ground_truth is not None:
         metrics = {"hull": shape_metrics(hull, ground_truth),
                    "mesh": metrics if metrics is not None else shape_metrics(mesh, ground_truth)}

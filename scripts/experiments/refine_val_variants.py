@@ -77,9 +77,11 @@ def main() -> None:
             kept = result.report["kept"] == "refined"
             iou = min(result.report["silhouette_iou_after"])
             rr = result.report.get("rerender_error", [np.nan, np.nan])[1]
+            term = result.report.get("normal_term", {})
+            term_text = "term " + ("-" if "kept" not in term else "kept" if term["kept"] else "dropped")
             rows[v].append((h["cd"], h["cdn_mean"], m["cd"], m["cdn_mean"], m["metro"], iou, kept, seconds, rr))
             print(f"{name:15s} {v:40s} CD {m['cd']:6.2f} CDN {m['cdn_mean']:6.2f} metro {m['metro']:6.2f} "
-                  f"IoU {iou:.4f} trusted {result.report.get('normal_term', {}).get('trusted_share', 0):.3f} bias {result.report['terms_after'].get('silhouette_bias_px', np.nan):+.3f}px rr {rr:.4f} {'kept' if kept else 'REJECTED ' + result.report.get('kept_why', '')} "
+                  f"IoU {iou:.4f} trusted {result.report.get('normal_term', {}).get('trusted_share', 0):.3f} bias {result.report['terms_after'].get('silhouette_bias_px', np.nan):+.3f}px rr {rr:.4f} {term_text} {'kept' if kept else 'REJECTED ' + result.report.get('kept_why', '')} "
                   f"{seconds:.1f}s", flush=True)
     # ratios of the means, as docs/results.md and issue 25's bars use them
     print("\nmeans: CD/hull CDN/hull CD CDN Metro | worst IoU | kept | seconds | rerender")
