@@ -29,3 +29,17 @@ def torch_threads(n: int) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(old)
+
+
+@contextlib.contextmanager
+def deterministic_torch() -> Iterator[None]:
+    """Run the block with torch's deterministic algorithms, then restore the previous setting: the
+    refine stage's descents accumulate gradients onto shared vertices (index_put with accumulate),
+    whose multi-threaded default sums in a varying order, and the 1e-7 differences grew to 0.2% of a
+    mesh's CD over 16 steps."""
+    old = torch.are_deterministic_algorithms_enabled()
+    torch.use_deterministic_algorithms(True)
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(old)

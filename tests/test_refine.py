@@ -233,7 +233,7 @@ def test_the_normal_term_follows_what_the_gain_head_vouches_for(scene, capture):
     cdn_base, cdn = (shape_metrics(m, gt)["cdn_mean"] for m in (base, result.refined))
     assert cdn < 0.7 * cdn_base, (cdn_base, cdn)
     assert min(result.report["silhouette_iou_after"]) > 0.97
-    # `reconstruct`'s own second pass with a net that has no gain head (the 5- and 20-view ones) does
+    # `reconstruct`'s own second pass with a net that has no gain head (the 20-view one) does
     # not run the net at all
     headless = second_pass(capture, SimpleNamespace(net=SimpleNamespace(cfg=SimpleNamespace(gain_head=False))))
     for stage, said in ((fed(-5.0), {"trusted_share": 0.0}),
