@@ -3,12 +3,13 @@
 and the worst view's silhouette IoU; "kept" says whether `reconstruct`'s keep check would keep it.
 
 Usage: .venv/bin/python scripts/experiments/refine_variants.py DATA 1,2,3,4,5,6 [VARIANT ...]
-(DATA/test a split made by `lookingglass generate --split test`; the shipped 10-view weights.) A VARIANT is
+(DATA/test a split made by `lookingglass generate --split test`; the shipped weights for its view count.) A VARIANT is
 "default" or comma-separated RefineConfig fields over the defaults ("iterations=12,fair_weight=25";
 "normal_iterations=0": without the normal term, which otherwise runs as in `reconstruct`); without any, the
 silhouette weights of the 2026-11-25 measurement.
 """
 import dataclasses
+import json
 import sys
 import warnings
 from pathlib import Path
@@ -34,8 +35,9 @@ if len(sys.argv) > 3:
     VARIANTS = {v: dataclasses.asdict(variant(v)) for v in sys.argv[3:]}
 warnings.simplefilter("ignore")
 torch.set_num_threads(1)
-ds = TransparentSceneDataset(sys.argv[1], "test", views=10)
-normal_net, point_net = load_normal_net(shipped_weights(10)[0]), load_point_net(shipped_weights(10, "points")[0])
+views = json.loads((Path(sys.argv[1]) / "test" / "config.json").read_text())["views"]
+ds = TransparentSceneDataset(sys.argv[1], "test", views=views)
+normal_net, point_net = load_normal_net(shipped_weights(views)[0]), load_point_net(shipped_weights(views, "points")[0])
 for i in map(int, sys.argv[2].split(",")):
     capture, hull, truth = ds.capture(i), ds.hull(i), ds.meshes(i)[0]
     normals = run_normal_stage(capture, hull.mesh, normal_net, None)
