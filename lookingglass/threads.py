@@ -20,15 +20,11 @@ def torch_threads(n: int) -> Iterator[None]:
     """
     if n == 0:
         n = max(1, min(torch.get_num_threads(), (os.cpu_count() or 2) // 2))
-    if n < 0 or n == torch.get_num_threads():
+    if n < 0:
         yield
         return
-    old = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
+    with _torch_setting(torch.get_num_threads, torch.set_num_threads, n):
         yield
-    finally:
-        torch.set_num_threads(old)
 
 
 @contextlib.contextmanager
@@ -37,9 +33,19 @@ def deterministic_torch() -> Iterator[None]:
     refine stage's descents accumulate gradients onto shared vertices (index_put with accumulate),
     whose multi-threaded default sums in a varying order, and the 1e-7 differences grew to 0.2% of a
     mesh's CD over 16 steps."""
-    old = torch.are_deterministic_algorithms_enabled()
-    torch.use_deterministic_algorithms(True)
+    with _torch_setting(torch.are_deterministic_algorithms_enabled, torch.use_deterministic_algorithms, True):
+        yield
+
+
+@contextlib.contextmanager
+def _torch_setting(get, put, value) -> Iterator[None]:
+    """Run the block with a torch setting (read by `get`, written by `put`) at `value`, then restore it."""
+    old = get()
+    if value == old:
+        yield
+        return
+    put(value)
     try:
         yield
     finally:
-        torch.use_deterministic_algorithms(old)
+        put(old)
