@@ -17,9 +17,11 @@ from lookingglass.render.tracer import trace_two_bounce
 CLI = [sys.executable, "-m", "lookingglass.cli"]
 
 
-def run(*args, ok=True, **kwargs):
-    """`lookingglass ARGS` in a subprocess; with ok, assert it exits 0 (stderr in the message)."""
-    proc = subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=300, **kwargs)
+def run(*args, ok=True, timeout=600, **kwargs):
+    """`lookingglass ARGS` in a subprocess; with ok, assert it exits 0 (stderr in the message).
+    timeout guards against a hang only: a 2-core machine running the other pytest worker beside it
+    takes 3-4x a quiet run's time."""
+    proc = subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=timeout, **kwargs)
     if ok:
         assert proc.returncode == 0, proc.stderr
     return proc

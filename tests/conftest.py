@@ -1,4 +1,5 @@
 import os
+import shutil
 import sys
 from pathlib import Path
 
@@ -24,11 +25,25 @@ def shared_envmaps() -> list[Path]:
 def torus_run(tmp_path_factory) -> Path:
     """ROOT with gt.ply, env.hdr and scene/ (`cli_helpers.render_torus_scene`: a 10-view 120x90
     capture of a tilted torus) and out/: `lookingglass reconstruct scene --out out` with the
-    defaults, run once for the session (tests/test_cli.py and tests/test_report.py read it; a test
-    that changes anything in it works on a copy)."""
+    defaults, run once for the whole test run: the pytest-xdist workers share it through a file
+    lock (each worker running its own made the two runs contend for the cores, and one passed
+    cli_helpers' 5-minute limit in CI). tests/test_cli.py and tests/test_report.py read it; a test
+    that changes anything in it works on a copy."""
+    from filelock import FileLock
+
     from cli_helpers import render_torus_scene, run
 
-    root = tmp_path_factory.mktemp("torus")
-    render_torus_scene(root)
-    run("reconstruct", root / "scene", "--out", root / "out", "--quiet")
+    # the workers' base temp dirs share a parent; without xdist it is this run's own
+    shared = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        shared = shared.parent
+    root = shared / "torus"
+    with FileLock(str(shared / "torus.lock")):
+        if not (root / "done").exists():
+            if root.exists():  # a run that failed part-way: start again
+                shutil.rmtree(root)
+            root.mkdir()
+            render_torus_scene(root)
+            run("reconstruct", root / "scene", "--out", root / "out", "--quiet", timeout=900)
+            (root / "done").touch()
     return root
