@@ -655,6 +655,11 @@ def _terms(vertices: np.ndarray, faces: np.ndarray, fields: torch.Tensor, cams: 
             "rim_vertices": int(rim.sum())}
 
 
+def weighted_mean(values: np.ndarray, weights: np.ndarray) -> float:
+    """The views' `values` (V,) averaged with the views' weights (V,)."""
+    return float((values * weights).sum() / max(weights.sum(), 1e-12))
+
+
 def carve_by_hull(refined: trimesh.Trimesh, hull_mesh: trimesh.Trimesh, cameras: Cameras, masks: np.ndarray,
                   cast: np.ndarray, weights: np.ndarray,
                   config: RefineConfig) -> tuple[trimesh.Trimesh | None, np.ndarray | None, dict]:
@@ -680,8 +685,7 @@ def carve_by_hull(refined: trimesh.Trimesh, hull_mesh: trimesh.Trimesh, cameras:
         report.update(kept=False, why="the intersection is not a closed mesh")
         return None, None, report
     cast_carved = object_masks(carved, cameras)
-    mean_w = lambda a: float((a * weights).sum() / max(weights.sum(), 1e-12))  # noqa: E731
-    before, after = mean_w(cast_iou(cast, masks)), mean_w(cast_iou(cast_carved, masks))
+    before, after = (weighted_mean(cast_iou(c, masks), weights) for c in (cast, cast_carved))
     report.update(iou_mean=[round(before, 4), round(after, 4)], kept=after > before + config.keep_tolerance)
     return (carved, cast_carved, report) if report["kept"] else (None, None, report)
 
@@ -761,7 +765,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         x, losses = _descend(x, x0, faces, target, solve, step * config.edge_length, iterations)
         return losses
 
-    mean_w = lambda a: float((a * weights).sum() / max(weights.sum(), 1e-12))  # noqa: E731
+    mean_w = lambda a: weighted_mean(a, weights)  # noqa: E731
     prepared = photos_at(capture, config.rerender_width) if capture is not None and config.rerender_width > 0 else None
     rerendered: dict = {}
     normal_report: dict = {}
