@@ -27,8 +27,9 @@ def torus_run(tmp_path_factory) -> Path:
     capture of a tilted torus) and out/: `lookingglass reconstruct scene --out out` with the
     defaults, run once for the whole test run: the pytest-xdist workers share it through a file
     lock (each worker running its own made the two runs contend for the cores, and one passed
-    cli_helpers' 5-minute limit in CI; alone it takes ~80 s, in the suite up to ~280 s). tests/test_cli.py and tests/test_report.py read it; a test
-    that changes anything in it works on a copy."""
+    cli_helpers' 5-minute limit in CI; alone it takes ~80 s, in the suite up to ~280 s).
+    tests/test_cli.py and tests/test_report.py read it; a test that changes anything in it works on
+    a copy."""
     from filelock import FileLock
 
     from cli_helpers import render_torus_scene, run
