@@ -6,9 +6,17 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))  # tests/mitsuba_ref.py and friends
-# one torch thread a pytest-xdist worker (`pytest -n 2`: a worker a core), else both cores; set
-# before any test module imports torch, and inherited by the CLI subprocesses the tests start
-os.environ.setdefault("OMP_NUM_THREADS", "1" if os.environ.get("PYTEST_XDIST_WORKER") else "2")
+# One thread a pytest-xdist worker (`pytest -n 2`: a worker a core), else both cores; set before
+# any test module imports torch (or numpy's OpenBLAS), and inherited by the CLI subprocesses the
+# tests start. A worker overrides what it inherits: the controller, which imports this file first
+# and is no worker, would otherwise hand both workers 2 threads each, and 4 threads spinning on 2
+# cores made some tests 10x slower than alone (the suite took 16-22 min instead of ~8).
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+for variable in THREAD_VARIABLES:
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        os.environ[variable] = "1"
+    else:
+        os.environ.setdefault(variable, "2")
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"  # ../shared beside the repository
 
@@ -26,8 +34,8 @@ def torus_run(tmp_path_factory) -> Path:
     """ROOT with gt.ply, env.hdr and scene/ (`cli_helpers.render_torus_scene`: a 10-view 120x90
     capture of a tilted torus) and out/: `lookingglass reconstruct scene --out out` with the
     defaults, run once for the whole test run: the pytest-xdist workers share it through a file
-    lock (each worker running its own made the two runs contend for the cores, and one passed
-    cli_helpers' 5-minute limit in CI; alone it takes ~80 s, in the suite up to ~280 s).
+    lock (each worker running its own made the two runs contend for the cores; alone it takes
+    ~80 s, ~95 s in the suite).
     tests/test_cli.py and tests/test_report.py read it; a test that changes anything in it works on
     a copy."""
     from filelock import FileLock

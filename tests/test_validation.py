@@ -11,6 +11,8 @@ from lookingglass.config import PipelineConfig
 from lookingglass.data.validation import EDGE, SHAPES, generate_validation_set, validation_shape
 from lookingglass.errors import LookingGlassError
 from lookingglass.metrics import load_mesh, shape_metrics
+from lookingglass.normals.latent import LatentOptConfig
+from lookingglass.normals.stage import NormalStageConfig
 from lookingglass.validate import evaluate_validation_set, markdown_table
 from lookingglass.weights import shipped_weights
 
@@ -48,7 +50,9 @@ def test_reconstruct_scored_against_the_hull(tmp_path):
     are finite and the hull's are those of a good hull (a pebble is convex), and a second run
     reuses the finished reconstruction."""
     generate_validation_set(tmp_path / "set", names=["pebble"], views=5, size=(128, 96), samples_per_axis=1)
-    config = PipelineConfig(device="cpu", stop_after="normals")
+    # the network's normals without the latent optimization (tests/test_latent.py's): faster
+    config = PipelineConfig(device="cpu", stop_after="normals",
+                            normals=NormalStageConfig(latent=LatentOptConfig(iterations_n2=0, iterations_both=0)))
     result = evaluate_validation_set(tmp_path / "set", tmp_path / "out", config)
     (record,) = result["scenes"]
     gt = load_mesh(tmp_path / "set" / "pebble" / "ground_truth.ply")
