@@ -8,7 +8,8 @@ import os
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
-_THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+# what sizes the thread pools of torch, OpenMP and the BLAS libraries (tests/conftest.py sets them too)
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
 
 def _init_worker(initializer: Callable[..., None] | None, initargs: tuple) -> None:
@@ -32,7 +33,7 @@ def map_in_processes(func: Callable[[Any], Any], tasks: Iterable, workers: int,
 
     Spawn, not fork: forking after torch or OpenMP started can hang. The thread variables are
     set before the children import anything and restored when the generator ends or is closed."""
-    saved = {v: os.environ.get(v) for v in _THREAD_VARIABLES}
+    saved = {v: os.environ.get(v) for v in THREAD_VARIABLES}
     os.environ.update({v: "1" for v in saved})
     try:
         ctx = multiprocessing.get_context("spawn")

@@ -5,13 +5,14 @@ from pathlib import Path
 
 import pytest
 
+from lookingglass.parallel import THREAD_VARIABLES  # starts no thread pool
+
 sys.path.insert(0, str(Path(__file__).parent))  # tests/mitsuba_ref.py and friends
 # One thread a pytest-xdist worker (`pytest -n 2`: a worker a core), else both cores; set before
 # any test module imports torch (or numpy's OpenBLAS), and inherited by the CLI subprocesses the
 # tests start. A worker overrides what it inherits: the controller, which imports this file first
 # and is no worker, would otherwise hand both workers 2 threads each, and 4 threads spinning on 2
 # cores made some tests 10x slower than alone (the suite took 16-22 min instead of ~8).
-THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 for variable in THREAD_VARIABLES:
     if os.environ.get("PYTEST_XDIST_WORKER"):
         os.environ[variable] = "1"
