@@ -156,6 +156,8 @@ class RefineConfig:
                                       "normal net without a gain head).", range=(0, None))
     normal_step: float = setting(0.5, "Largest normal-term step, in edge lengths (halved while the loss does not fall).",
                                  range=(0, None))
+    normal_step_growth: float = setting(1.0, "The normal term's step length times this after a step that lowered its "
+                                             "loss (at most normal_step; 1: it only shrinks).", range=(1, 4))
     normal_trust_gain: float = setting(2.0, "A pixel pulls where the gain head predicts the network's normals closer to "
                                             "the truth than the mesh's by more than this, in degrees, at both hits.",
                                        range=(None, None))
@@ -595,12 +597,14 @@ class _NormalTarget:
 
 
 def _descend(x: np.ndarray, x0: np.ndarray, faces: np.ndarray, target, precondition,
-             step: float, iterations: int) -> tuple[np.ndarray, list[float]]:
+             step: float, iterations: int, growth: float = 1.0) -> tuple[np.ndarray, list[float]]:
     """Descend `target.loss` (the photometric or the normal term) from `x`: each step is the loss
     gradient smoothed by `precondition` (the silhouette solve's own system, so the step is smooth
     and keeps the rims on their masks), scaled so its 99th-percentile vertex moves `step`, then
-    halved until the loss falls (the step length carries over). Returns the vertices and the loss
-    before each step and after the last."""
+    halved until the loss falls; the step length carries over, times `growth` after a step that
+    fell (at most the first `step`). Returns the vertices and the loss before each step and after
+    the last."""
+    largest = step
     losses = []
     value, g = target.loss(x, faces, grad=True)
     for _ in range(iterations):
@@ -613,6 +617,7 @@ def _descend(x: np.ndarray, x0: np.ndarray, faces: np.ndarray, target, precondit
             trial, trial_g = target.loss(proposed, faces, grad=True)
             if trial < value:
                 x, value, g = proposed, trial, trial_g
+                step = min(step * growth, largest)
                 break
             step /= 2
     return x, losses + [value]
@@ -755,14 +760,14 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
             - config.anchor_weight * (x - x0)
         x = _unfolded(x0, x, x + solver.operator(cons.M)(rhs), faces)
 
-    def descend(target, step: float, iterations: int) -> list[float]:
+    def descend(target, step: float, iterations: int, growth: float = 1.0) -> list[float]:
         """Descend `target`'s loss from the current vertices (the photometric or the normal term),
         preconditioned by the silhouette solve's system there; returns the loss before each step and
         after the last."""
         nonlocal x
         s, g = field_values(fields, cams, x)
         solve = solver.operator(_constraints(x, faces, s, g, cams, weights, config, w_sil).M)
-        x, losses = _descend(x, x0, faces, target, solve, step * config.edge_length, iterations)
+        x, losses = _descend(x, x0, faces, target, solve, step * config.edge_length, iterations, growth)
         return losses
 
     mean_w = lambda a: weighted_mean(a, weights)  # noqa: E731
@@ -783,7 +788,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
             normal_report = {"trusted_share": round(share, 4)}
             if share > 0:
                 normal_report.update(loss=[round(v, 4) for v in descend(target, config.normal_step,
-                                                                           config.normal_iterations)], kept=True)
+                                                                           config.normal_iterations,
+                                                                           config.normal_step_growth)], kept=True)
             if share > 0 and prepared is not None:
                 # the gain head is a weak signal on some shapes (the key, session 42): the term's
                 # result stays only where it explains the photos no worse than the mesh before it

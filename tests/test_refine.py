@@ -360,3 +360,28 @@ def test_coarse_masks_pull_less():
     default = RefineConfig()
     assert fair_weight(default, 480) == fair_weight(default, 1000) == default.fair_weight
     assert fair_weight(default, 240) == pytest.approx(default.fair_weight * 0.5 ** default.fair_width_power, rel=1e-12)
+
+
+def test_the_descent_step_grows_back_after_a_step_that_fell():
+    """`_descend` (the normal and photometric terms): a step that does not lower the loss is halved;
+    with `growth` > 1 each step that does is followed by a longer one (at most the first), so one
+    rough spot (ray-cast losses are piecewise) does not leave the descent crawling. A uniform shift
+    u of a mesh toward a minimum at u = 1, with a bump at u = 0.3 that rejects the first step of
+    0.3: growing by 2, the steps after the halved one are 0.3 again."""
+    from lookingglass.refine import _descend
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    x0, faces = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+
+    def loss(x, f, grad):
+        u = float((x - x0)[:, 0].mean())
+        bump = 10.0 if 0.28 < u < 0.32 else 0.0
+        return (u - 1.0) ** 2 + bump, np.tile([2 * (u - 1.0), 0.0, 0.0], (len(x), 1))
+
+    reached = {}
+    for growth in (1.0, 2.0):
+        x, losses = _descend(x0.copy(), x0, faces, SimpleNamespace(loss=loss), lambda g: g, 0.3, 4, growth)
+        assert all(b < a for a, b in zip(losses, losses[1:])), losses
+        reached[growth] = float((x - x0)[:, 0].mean())
+    # halving-only meets the bump again at 0.15 + 0.15 and creeps up to it in ever shorter steps
+    assert reached[1.0] < 0.3 and reached[2.0] == pytest.approx(0.15 + 3 * 0.3), reached
