@@ -53,7 +53,8 @@ The normal term (`normal_iterations`) descends the misfit between the mesh's two
 (render/differentiable.py) and the normal network's N1/N2 from a second pass: after the silhouette
 iterations the network is run again, fed this mesh in place of the hull, and its gain head says per
 pixel how many degrees closer to the truth its normals are than the mesh's; the term follows them
-where both gains exceed `normal_trust_gain` (1-46% of the masked pixels on the validation set), and its
+where both gains exceed `normal_trust_gain` (13-58% of the masked pixels on the validation set at
+1 degree), with a step that halves when the loss does not fall and grows back when it does, and its
 result stays only if it re-renders no worse against the photos. Fed the hull, the same head (or the
 rendering error) cannot say where the prediction beats a mesh the stage has already made better
 than the hull: that made smooth shapes worse (docs/history.md, sessions 40-42). With true normals
@@ -156,9 +157,9 @@ class RefineConfig:
                                       "normal net without a gain head).", range=(0, None))
     normal_step: float = setting(0.5, "Largest normal-term step, in edge lengths (halved while the loss does not fall).",
                                  range=(0, None))
-    normal_step_growth: float = setting(1.0, "The normal term's step length times this after a step that lowered its "
+    normal_step_growth: float = setting(2.0, "The normal term's step length times this after a step that lowered its "
                                              "loss (at most normal_step; 1: it only shrinks).", range=(1, 4))
-    normal_trust_gain: float = setting(2.0, "A pixel pulls where the gain head predicts the network's normals closer to "
+    normal_trust_gain: float = setting(1.0, "A pixel pulls where the gain head predicts the network's normals closer to "
                                             "the truth than the mesh's by more than this, in degrees, at both hits.",
                                        range=(None, None))
     hull_carve: bool = setting(True, "Intersect the refined mesh with the visual hull (manifold3d) when its silhouette "
