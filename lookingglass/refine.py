@@ -155,7 +155,8 @@ class RefineConfig:
                                       "normal network, fed the mesh in place of the hull, where its gain head says both "
                                       "normals beat the mesh's by more than normal_trust_gain (0: off; skipped for a "
                                       "normal net without a gain head).", range=(0, None))
-    normal_step: float = setting(0.5, "Largest normal-term step, in edge lengths (halved while the loss does not fall).",
+    normal_step: float = setting(0.5, "Largest normal-term step, in edge lengths (halved while the loss does not fall, "
+                                 "grown back by normal_step_growth).",
                                  range=(0, None))
     normal_step_growth: float = setting(2.0, "The normal term's step length times this after a step that lowered its "
                                              "loss (at most normal_step; 1: it only shrinks).", range=(1, 4))

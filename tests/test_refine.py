@@ -280,13 +280,13 @@ def test_the_normal_term_follows_what_the_gain_head_vouches_for(scene, capture):
     headless = second_pass(capture, SimpleNamespace(net=SimpleNamespace(cfg=SimpleNamespace(gain_head=False))))
     # (what follows skips the term, whatever the iterations before it: 3 of them keep the test fast)
     short = dataclasses.replace(base_config, iterations=3)
-    base = refine_surface(start, hull, masks, cameras, short).refined
+    short_base = refine_surface(start, hull, masks, cameras, short).refined
     for stage, said in ((fed(-5.0), {"trusted_share": 0.0}),
                         (fed(None), {"skipped": "the normal net has no gain head"}),
                         (headless, {"skipped": "the normal net has no gain head"})):
         result = refine_surface(start, hull, masks, cameras, short, normals=stage)
         assert result.report["normal_term"] == said
-        np.testing.assert_allclose(result.refined.vertices, base.vertices, atol=1e-9)
+        np.testing.assert_allclose(result.refined.vertices, short_base.vertices, atol=1e-9)
 
 
 def test_the_second_pass_feeds_the_network_the_mesh_and_keeps_what_explains_the_photos(scene, capture):
