@@ -136,6 +136,9 @@ class RefineConfig:
     cg_iterations: int = setting(60, "Most conjugate-gradient iterations per linear solve (60 and 200 gave the same "
                                      "meshes on val480 with silhouettes 10 / fairing 100; 60 in 0.6 of the time).",
                                  range=(1, None))
+    descent_cg_iterations: int = setting(150, "Most conjugate-gradient iterations of the solve that smooths each normal- or "
+                                             "photometric-term step (the silhouette solve's system as a preconditioner).",
+                                         range=(1, None))
     view_coverage_full: float = setting(0.97, "A view whose mask the hull covers at least this much has full weight.",
                                         range=(0, 1))
     view_coverage_zero: float = setting(0.8, "A view whose mask the hull covers at most this much has weight 0 (linear up to full).",
@@ -357,29 +360,29 @@ class _Solver:
     anchor weights. Jacobi-preconditioned conjugate gradients, at most `iterations` of them."""
 
     def __init__(self, lap: sp.csr_matrix, c_lap: np.ndarray, c_diag: float, iterations: int):
+        # L^T C L + c I as one matrix: one sparse product per CG iteration instead of two (~25% faster)
+        system = (lap.T @ sp.diags(np.asarray(c_lap, np.float64)) @ lap + c_diag * sp.identity(lap.shape[0])).tocsr()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # torch: sparse CSR is "beta"
-            self.lap, self.lap_t = _torch_csr(lap), _torch_csr(lap.T)
-        self.c_lap = torch.as_tensor(c_lap, dtype=torch.float64)[:, None]
-        self.c_diag = float(c_diag)
-        # the diagonal of L^T C L + c I, the same for the three coordinates
-        self.base_diag = (torch.as_tensor(lap.multiply(lap).T @ c_lap, dtype=torch.float64) + self.c_diag)[:, None]
+            self.system = _torch_csr(system)
+        # its diagonal, the same for the three coordinates
+        self.base_diag = torch.as_tensor(system.diagonal(), dtype=torch.float64)[:, None]
         self.iterations = iterations
 
-    def operator(self, M: np.ndarray):
-        """solve(rhs) -> d (numpy, (N, 3)) for the system with constraint blocks M."""
+    def operator(self, M: np.ndarray, iterations: int | None = None):
+        """solve(rhs) -> d (numpy, (N, 3)) for the system with constraint blocks M (at most
+        `iterations` CG iterations; the solver's own number when None)."""
+        iterations = self.iterations if iterations is None else iterations
         rows = np.flatnonzero(np.abs(M).reshape(len(M), 9).max(axis=1) > 0)
         blocks, rows_t = torch.as_tensor(M[rows]), torch.as_tensor(rows)
         diag = self.base_diag.repeat(1, 3)
         diag[rows_t] += torch.diagonal(blocks, dim1=1, dim2=2)
 
         def apply(d: torch.Tensor) -> torch.Tensor:
-            out = self.lap_t @ (self.c_lap * (self.lap @ d))
-            out.add_(d, alpha=self.c_diag)
-            return out.index_add_(0, rows_t, (blocks @ d[rows_t].unsqueeze(-1)).squeeze(-1))
+            return (self.system @ d).index_add_(0, rows_t, (blocks @ d[rows_t].unsqueeze(-1)).squeeze(-1))
 
         def solve(rhs: np.ndarray) -> np.ndarray:
-            return _pcg(apply, torch.as_tensor(rhs, dtype=torch.float64), diag, self.iterations).numpy()
+            return _pcg(apply, torch.as_tensor(rhs, dtype=torch.float64), diag, iterations).numpy()
         return solve
 
 
@@ -768,7 +771,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         after the last."""
         nonlocal x
         s, g = field_values(fields, cams, x)
-        solve = solver.operator(_constraints(x, faces, s, g, cams, weights, config, w_sil).M)
+        solve = solver.operator(_constraints(x, faces, s, g, cams, weights, config, w_sil).M,
+                                config.descent_cg_iterations)
         x, losses = _descend(x, x0, faces, target, solve, step * config.edge_length, iterations, growth)
         return losses
 
