@@ -67,6 +67,7 @@ that explains the photos worse is not kept.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 from dataclasses import dataclass
@@ -166,6 +167,9 @@ class RefineConfig:
     normal_trust_gain: float = setting(1.0, "A pixel pulls where the gain head predicts the network's normals closer to "
                                             "the truth than the mesh's by more than this, in degrees, at both hits.",
                                        range=(None, None))
+    normal_robust: float = setting(0.03, "Scale of the normal term's robust misfit: a ray's 2 - n1.t1 - n2.t2 counts as "
+                                        "s m / (s + m), so a ray whose hit jumps to another sheet of the mesh moves the "
+                                        "loss by at most s (0: plain mean).", range=(0, None))
     hull_carve: bool = setting(True, "Intersect the refined mesh with the visual hull (manifold3d) when its silhouette "
                                      "spills out of a mask by more than carve_outside_share, and keep the carved mesh "
                                      "when it matches the masks better (mean IoU up by more than keep_tolerance).")
@@ -547,6 +551,7 @@ class _NormalTarget:
     n2: torch.Tensor
     ior: float
     share: float  # of the masks' pixels
+    robust: float = 0.0  # each ray's misfit m counts as robust * m / (robust + m) (0: as m)
 
     @classmethod
     def of(cls, stage, hull: VisualHull, vertices: np.ndarray, faces: np.ndarray,
@@ -593,6 +598,8 @@ class _NormalTarget:
         with torch.set_grad_enabled(grad):
             n1, n2, valid = rays_two_bounce(x, f, self.origins, self.dirs, mesh_caster(x, f), self.ior)
             misfit = 2 - (n1 * self.n1).sum(-1) - (n2 * self.n2).sum(-1)
+            if self.robust > 0:
+                misfit = self.robust * misfit / (self.robust + misfit)
             loss = (valid * misfit).sum() / valid.sum().clamp(min=1)
             if not grad:
                 return float(loss), None
@@ -791,7 +798,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
             normal_report = {"skipped": "the normal net has no gain head"}
         else:
             before_term = x.copy()
-            target = _NormalTarget.of(stage, hull, x, faces, config.normal_trust_gain)
+            target = dataclasses.replace(_NormalTarget.of(stage, hull, x, faces, config.normal_trust_gain),
+                                         robust=config.normal_robust)
             share = target.share
             normal_report = {"trusted_share": round(share, 4)}
             if share > 0:
