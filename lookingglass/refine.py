@@ -54,8 +54,10 @@ The normal term (`normal_iterations`) descends the misfit between the mesh's two
 iterations the network is run again, fed this mesh in place of the hull, and its gain head says per
 pixel how many degrees closer to the truth its normals are than the mesh's; the term follows them
 where both gains exceed `normal_trust_gain` (13-58% of the masked pixels on the validation set at
-1 degree), with a step that halves when the loss does not fall and grows back when it does, and its
-result stays only if it re-renders no worse against the photos. Fed the hull, the same head (or the
+1 degree), with a step that halves when the loss does not fall and grows back when it does, each
+step the gradient smoothed by a converged solve of the silhouette system and each ray's misfit
+robust (a ray whose hit jumps to another sheet stalled the line search: docs/history.md, session
+47), and its result stays only if it re-renders no worse against the photos. Fed the hull, the same head (or the
 rendering error) cannot say where the prediction beats a mesh the stage has already made better
 than the hull: that made smooth shapes worse (docs/history.md, sessions 40-42). With true normals
 as the target the term reaches the issue's bar on the duck (CDN-mean 8.0 -> 5.9, CD 2.6 -> 1.7).
