@@ -443,6 +443,5 @@ def test_a_robust_misfit_lets_pixels_the_mesh_cannot_follow_go(scene, capture):
         result = refine_surface(start, hull, masks, cameras, dataclasses.replace(config, normal_robust=robust),
                                 normals=fed)
         cdn[robust] = shape_metrics(result.refined, gt)["cdn_mean"]
-    base = shape_metrics(refine_surface(start, hull, masks, cameras, config).refined, gt)["cdn_mean"]
-    # measured: silhouettes only 6.14, plain 4.48, robust 1.79
-    assert cdn[0.03] < 0.6 * cdn[0.0] and cdn[0.03] < 0.4 * base, (base, cdn)
+    # measured: plain 4.48, robust 1.79 (the silhouette iterations alone 6.14)
+    assert cdn[0.03] < 0.6 * cdn[0.0], cdn
