@@ -800,6 +800,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
             normal_report = {"skipped": "the normal net has no gain head"}
         else:
             before_term = x.copy()
+            # robust set here, not in `of`: experiments replace `of` with their own trust rules
             target = dataclasses.replace(_NormalTarget.of(stage, hull, x, faces, config.normal_trust_gain),
                                          robust=config.normal_robust)
             share = target.share
