@@ -88,7 +88,6 @@ from .physics.environment import EnvironmentMap
 from .render.compare import RERENDER_SAMPLES, RERENDER_WIDTH, Rerendering, photos_at, rerender
 from .render.differentiable import MeshTwoBounce, mesh_caster, mesh_two_bounce, rays_two_bounce, vertex_normals_t
 from .render.raycast import RayCaster, object_masks
-from .threads import deterministic_torch
 
 
 REFERENCE_EDGE = 0.015  # the edge length the Laplacian weights are given for
@@ -528,8 +527,7 @@ class _PhotoTarget:
             loss = ((comparable(out.image) - self.photos).abs() * m).sum() / (3 * m.sum()).clamp(min=1)
             if not grad:
                 return float(loss), None
-            with deterministic_torch():
-                loss.backward()
+            loss.backward()  # deterministic: the vertex gathers are index_select's (gather_rows)
         return float(loss.detach()), x.grad.numpy().astype(np.float64)
 
 
@@ -605,8 +603,7 @@ class _NormalTarget:
             loss = (valid * misfit).sum() / valid.sum().clamp(min=1)
             if not grad:
                 return float(loss), None
-            with deterministic_torch():
-                loss.backward()
+            loss.backward()  # deterministic: the vertex gathers are index_select's (gather_rows)
         return float(loss.detach()), x.grad.numpy().astype(np.float64)
 
 

@@ -28,16 +28,6 @@ def torch_threads(n: int) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def deterministic_torch() -> Iterator[None]:
-    """Run the block with torch's deterministic algorithms, then restore the previous setting: the
-    refine stage's descents accumulate gradients onto shared vertices (index_put with accumulate),
-    whose multi-threaded default sums in a varying order, and the 1e-7 differences grew to 0.2% of a
-    mesh's CD over 16 steps."""
-    with _torch_setting(torch.are_deterministic_algorithms_enabled, torch.use_deterministic_algorithms, True):
-        yield
-
-
-@contextlib.contextmanager
 def _torch_setting(get, put, value) -> Iterator[None]:
     """Run the block with a torch setting (read by `get`, written by `put`) at `value`, then restore it."""
     old = get()

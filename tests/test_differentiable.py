@@ -82,3 +82,28 @@ def test_rerender_scores_the_shape():
     prepared = photos_at(capture, 80)  # several meshes against the same photos: prepared once
     assert rerender(smaller, capture, prepared=prepared).mean_error > 3 * same.mean_error
     assert np.array_equal(rerender(mesh, capture, prepared=prepared).error, same.error)
+
+
+def test_gradients_are_bitwise_repeatable_on_two_threads():
+    """The refine stage's descents sum these gradients onto shared vertices; summed in a varying
+    order (indexing's backward across threads) their 1e-7 differences grew to 0.2% of a mesh's CD
+    over 16 steps. A 20k-face mesh: enough gathered rows for torch to split the sums over threads."""
+    mesh = radial_blob(seed=1, subdivisions=5, amplitude=0.3)
+    cams = paper_rig(5, rng=2, width=64, height=48)
+    faces = torch.as_tensor(mesh.faces, dtype=torch.long)
+    weights = torch.randn(5, 48, 64, 3, generator=torch.Generator().manual_seed(0))
+
+    def gradient():
+        x = torch.as_tensor(mesh.vertices, dtype=torch.float32).requires_grad_(True)
+        tb = mesh_two_bounce(x, faces, cams)
+        ((tb.normal1 + 0.5 * tb.normal2) * weights).sum().backward()
+        return x.grad
+
+    old = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        first = gradient()
+        assert float(first.abs().sum()) > 0
+        assert all(torch.equal(first, gradient()) for _ in range(10))
+    finally:
+        torch.set_num_threads(old)
