@@ -156,7 +156,7 @@ class RefineConfig:
                                       range=(0.001, 10))
     photometric_envmap_height: int = setting(64, "Environment-map height the photometric loss looks up (a blurred map "
                                                  "widens the basin).", range=(8, 4096))
-    normal_iterations: int = setting(16, "Descent steps pulling the mesh's two-bounce normals toward a second pass of the "
+    normal_iterations: int = setting(32, "Descent steps pulling the mesh's two-bounce normals toward a second pass of the "
                                       "normal network, fed the mesh in place of the hull, where its gain head says both "
                                       "normals beat the mesh's by more than normal_trust_gain (0: off; skipped for a "
                                       "normal net without a gain head). 32 against 16: val480 CD 0.452 -> 0.441 x the "
