@@ -275,7 +275,7 @@ def test_the_normal_term_follows_what_the_gain_head_vouches_for(scene, capture):
     cdn_base, cdn = (shape_metrics(m, gt)["cdn_mean"] for m in (base, result.refined))
     assert cdn < 0.7 * cdn_base, (cdn_base, cdn)
     assert min(result.report["silhouette_iou_after"]) > 0.97
-    # `reconstruct`'s own second pass with a net that has no gain head (the 20-view one) does
+    # `reconstruct`'s own second pass with a net that has no gain head (one trained without) does
     # not run the net at all
     headless = second_pass(capture, SimpleNamespace(net=SimpleNamespace(cfg=SimpleNamespace(gain_head=False))))
     # (what follows skips the term, whatever the iterations before it: 3 of them keep the test fast)
