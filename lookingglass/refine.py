@@ -125,11 +125,11 @@ class RefineConfig:
     fair_width_power: float = setting(2.96, "How fast the fairing weight falls below silhouette_width.", range=(0, 8))
     silhouette_views: int = setting(5, "View count at and above which the silhouette weight applies whole; with V "
                                         "fewer views it is multiplied by this / V (0: never scaled).", range=(0, None))
-    field_blur_px: float = setting(0.7, "Gaussian blur (sigma, pixels) of the masks' signed-distance fields the "
+    field_blur_px: float = setting(0.0, "Gaussian blur (sigma, pixels) of the masks' signed-distance fields the "
                                         "silhouette terms pull toward, which irons out the masks' pixel staircase (0: "
-                                        "none). 0.7 against 0 (edge 0.018): val480 CDN-mean 8.10 -> 7.95, CD 4.38 -> "
-                                        "4.40, worst IoU 0.981 -> 0.985; 128x96 CDN-mean 8.79 -> 8.67, CD level.",
-                                   range=(0, 4))
+                                        "none). 0.7 (edge 0.018): val480 CDN-mean 8.10 -> 7.95, worst IoU 0.981 -> "
+                                        "0.985, but at 5 views the mug's handle came off its mask (worst IoU 0.994 -> "
+                                        "0.973; docs/history.md, session 49).", range=(0, 4))
     smooth_weight: float = setting(1.0, "Weight of the Laplacian of the displacement (at edge 0.015).",
                                    range=(0, None))
     fair_weight: float = setting(200.0, "Weight of the Laplacian of the positions (fairing; shrinks; at edge 0.015 and "
