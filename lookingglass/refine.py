@@ -105,7 +105,7 @@ class RefineConfig:
 
     edge_length: float = setting(0.018, "Edge length of the remeshed surface (hull-normalized frame). 0.018 against "
                                         "0.015: val480 CD 4.52 -> 4.38, CDN-mean 8.18 -> 8.10, Metro 9.25 -> 9.74, "
-                                        "~25% less time (the nut 45 000 -> 31 000 vertices); level at 128x96 "
+                                        "~25% less time (the nut 45 000 -> 32 000 vertices); level at 128x96 "
                                         "(docs/history.md, session 49).", range=(0.002, 0.2))
     remesh_iterations: int = setting(3, "Isotropic remeshing passes (0: keep the surface's own triangles).",
                                      range=(0, 50))

@@ -3,7 +3,7 @@
 # from the shipped 10-view net (the last run of recipes/normals_10views.sh) on 600 20-view scenes like users' captures.
 #
 # Time on a 2-core CPU: the 10-view net (~4.5 h, skipped if made), ~30 min of 20-view data, ~25 min of training,
-# ~40 min for the gain head.
+# ~6 min for the gain head.
 # Provenance: lookingglass/weights/normals_20views.json. Usage: bash recipes/normals_20views.sh (settings:
 # recipes/_lib.sh). Steps are skipped when their weights exist and resume when interrupted.
 #
