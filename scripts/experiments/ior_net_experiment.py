@@ -1,0 +1,131 @@
+"""Feasibility of the learned IoR estimate (lookingglass/ior_net.py): cache inputs, train, score.
+
+    python scripts/experiments/ior_net_experiment.py cache DATA SPLIT CACHE [--first N --last M --noise P]
+    python scripts/experiments/ior_net_experiment.py train CACHE_TRAIN OUT.safetensors [--epochs E]
+    python scripts/experiments/ior_net_experiment.py score CACHE_TEST WEIGHTS
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from lookingglass.capture.images import exposure_factor
+from lookingglass.data.torch_dataset import TransparentSceneDataset, as_8bit_photo
+from lookingglass.ior_net import IorNet, IorNetConfig, ior_net_inputs, posterior_estimate, soft_labels
+from lookingglass.normals.inputs import NormalInputs
+from lookingglass.physics.constants import IOR_GLASS
+
+
+def opt(argv, name, default):
+    return type(default)(argv[argv.index(name) + 1]) if name in argv else default
+
+
+def cache(argv):
+    data, split, out = argv[0], argv[1], Path(argv[2])
+    out.mkdir(parents=True, exist_ok=True)
+    ds = TransparentSceneDataset(data, split)
+    first, last = opt(argv, "--first", 0), min(opt(argv, "--last", len(ds)), len(ds))
+    noise = opt(argv, "--noise", 0.0)
+    cfg = IorNetConfig()
+    t0 = time.time()
+    for i in range(first, last):
+        name = out / f"{ds.scene_dirs[i].name}.npz"
+        if name.exists():
+            continue
+        cap = ds.capture(i, IOR_GLASS)
+        images = cap.images
+        rng = np.random.default_rng([i, 17])
+        if rng.random() < noise:  # an 8-bit phone photo
+            f = exposure_factor(torch.as_tensor(images), 0.5)
+            lin = (torch.as_tensor(images) * f).clamp(0, 1)
+            images = (as_8bit_photo(lin, float(rng.uniform(0, 0.02)), rng) / f).numpy()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            x = NormalInputs.from_capture(images, cap.masks, cap.envmap, cap.cameras, IOR_GLASS, ds.hull(i).mesh,
+                                          128, 96, 128)
+            views = ior_net_inputs(x, ds.hull(i).mesh, cfg.candidates)
+        tmp = name.with_suffix(".tmp.npz")
+        np.savez(tmp, views=views.numpy().astype(np.float16), mask=x.mask.numpy(), ior=ds.meta(i)["ior"])
+        tmp.rename(name)
+        print(f"{i} {ds.meta(i)['ior']:.4f} {time.time() - t0:.0f}s", flush=True)
+
+
+def load(cache_dir):
+    files = sorted(Path(cache_dir).glob("scene_*.npz"))
+    views, masks, iors = [], [], []
+    for f in files:
+        d = np.load(f)
+        views.append(torch.from_numpy(d["views"]))
+        masks.append(torch.from_numpy(d["mask"]))
+        iors.append(float(d["ior"]))
+    return torch.stack(views), torch.stack(masks), torch.tensor(iors)
+
+
+def train(argv):
+    views, masks, iors = load(argv[0])
+    out = Path(argv[1])
+    epochs, batch, lr = opt(argv, "--epochs", 30), opt(argv, "--batch", 8), opt(argv, "--lr", 1e-3)
+    torch.manual_seed(0)
+    cfg = IorNetConfig()
+    net = IorNet(cfg)
+    centres = cfg.bin_centres()
+    optim = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
+    n = len(iors)
+    steps = epochs * ((n + batch - 1) // batch)
+    sched = torch.optim.lr_scheduler.OneCycleLR(optim, max_lr=lr, total_steps=steps)
+    g = torch.Generator().manual_seed(0)
+    t0 = time.time()
+    for epoch in range(epochs):
+        perm = torch.randperm(n, generator=g)
+        total, err = 0.0, []
+        for s in range(0, n, batch):
+            idx = perm[s:s + batch]
+            V = views.shape[1]
+            nv = int(torch.randint(4, V + 1, (1,), generator=g))
+            sel = torch.randperm(V, generator=g)[:nv]
+            v = views[idx][:, sel].float()
+            m = masks[idx][:, sel]
+            logits = net(v, m)
+            loss = -(soft_labels(iors[idx], centres) * torch.log_softmax(logits, -1)).sum(-1).mean()
+            optim.zero_grad()
+            loss.backward()
+            optim.step()
+            sched.step()
+            total += float(loss) * len(idx)
+            err.append((posterior_estimate(logits.detach(), centres)[0] - iors[idx]).abs())
+        e = torch.cat(err)
+        print(f"epoch {epoch + 1}: loss {total / n:.4f} median |err| {e.median():.4f} ({time.time() - t0:.0f}s)",
+              flush=True)
+    from safetensors.torch import save_file
+    save_file(net.state_dict(), str(out))
+
+
+def score(argv):
+    views, masks, iors = load(argv[0])
+    cfg = IorNetConfig()
+    net = IorNet(cfg)
+    from safetensors.torch import load_file
+    net.load_state_dict(load_file(argv[1]))
+    net.eval()
+    with torch.no_grad():
+        est, std = [], []
+        for i in range(len(iors)):
+            mean, sd = posterior_estimate(net(views[i:i + 1].float(), masks[i:i + 1]), cfg.bin_centres())
+            est.append(float(mean))
+            std.append(float(sd))
+    est, std = np.array(est), np.array(std)
+    err = est - iors.numpy()
+    for i in range(len(err)):
+        print(f"{i} true {iors[i]:.4f} est {est[i]:.4f} +- {std[i]:.4f} err {err[i]:+.4f}")
+    print(f"median |err| {np.median(np.abs(err)):.4f}, mean err {err.mean():+.4f}, within 0.03: "
+          f"{(np.abs(err) <= 0.03).sum()}/{len(err)}, mean std {std.mean():.4f}")
+
+
+if __name__ == "__main__":
+    {"cache": cache, "train": train, "score": score}[sys.argv[1]](sys.argv[2:])
