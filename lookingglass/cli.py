@@ -43,6 +43,7 @@ GENERATE_OPTIONS = ConfigOptions("dataset", exclude=frozenset({"preset", "hull.n
 TRAIN_NORMALS_OPTIONS = ConfigOptions("normal_training", aliases={"net.num_views": "--views"}, exclude=frozenset(
     {"net.width", "net.height", "net.use_error_map", "net.use_cost_volume"}))
 TRAIN_POINTS_OPTIONS = ConfigOptions("point_training")
+TRAIN_IOR_OPTIONS = ConfigOptions("ior_training")
 SFM_OPTIONS = ConfigOptions("capture", exclude=frozenset({"ball", "stop_after"}))
 BALL_OPTIONS = ConfigOptions("capture", exclude=frozenset({"sfm", "stop_after"}))
 CAPTURE_OPTIONS = ConfigOptions("capture")
@@ -456,6 +457,26 @@ def train_points(
     dataset = TransparentSceneDataset(data, "train", views=views, augment=False)
     run(dataset, out, config, normals, device=device, reporter=Reporter(quiet=quiet),
         threads=threads)
+
+
+@app.command("train-ior", cls=config_command(TRAIN_IOR_OPTIONS))
+def train_ior(
+    ctx: typer.Context,
+    data: Path = typer.Option(..., "--data", help="Dataset folder made by `generate --ior-range` (uses DATA/train)."),
+    out: Path = typer.Option(..., "--out", help="Run folder: config, input cache, checkpoints, metrics, weights."),
+    device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
+    quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
+) -> None:
+    """Train the IoR net that `reconstruct --ior auto` reads (inputs cached in OUT/features; resumes
+    from OUT/checkpoint.pt; runs under torchrun for DDP)."""
+    from .data.torch_dataset import TransparentSceneDataset
+    from .ior_net import train_ior_net
+    from .presets import preset as make_preset
+    from .progress import Reporter
+
+    device = _device(device)  # checked before any work
+    config = apply_config_flags(ctx, make_preset().ior_training)
+    train_ior_net(TransparentSceneDataset(data, "train"), out, config, device=device, reporter=Reporter(quiet=quiet))
 
 
 @app.command("eval-normals")

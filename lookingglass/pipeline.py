@@ -37,6 +37,7 @@ from .errors import LookingGlassError, LookingGlassWarning
 from .fileio import staged_dir, write_atomic, write_json
 from .hull import VisualHull, carve_visual_hull
 from .ior import MIN_CONTRAST, RELIABLE_MIN_WIDTH, assumed_ior, estimate_ior
+from .ior_net import LEARNED_RELIABLE_STD, learned_ior, load_ior_net, shipped_ior_weights
 from .normals.stage import NormalStageResult, run_normal_stage, second_pass, write_normal_views
 from .points.stage import surface_from_normals
 from .progress import Reporter, peak_memory_mb
@@ -129,24 +130,36 @@ def _assumed_ior(capture: Capture, config: PipelineConfig) -> tuple[Capture, str
     return capture.with_ior(ior), "config"
 
 
-def _estimate_ior(capture: Capture, mesh: trimesh.Trimesh, mesh_stage: str, config: PipelineConfig,
-                  reporter: Reporter) -> dict:
-    """`--ior auto`: the IoR at which the kept mesh best explains the photos (lookingglass/ior.py);
-    a warning when the estimate is not to be trusted."""
+def _estimate_ior(capture: Capture, mesh: trimesh.Trimesh, mesh_stage: str, hull: trimesh.Trimesh,
+                  config: PipelineConfig, reporter: Reporter) -> dict:
+    """`--ior auto`: the IoR at which the kept mesh best explains the photos (lookingglass/ior.py) and
+    the IoR net's reading of the photos against the hull (lookingglass/ior_net.py, where weights
+    ship); the search's value where its curve is trusted, else the net's (docs/results.md, "Glass
+    of unknown IoR"); a warning when neither is to be trusted."""
     with reporter.stage("ior", "IoR estimate") as rec:
         estimate = estimate_ior(mesh, capture, config.ior_range, device=config.device)
-        found = {**estimate.report(), "mesh_from": mesh_stage}
+        found = {**estimate.report(), "mesh_from": mesh_stage, "method": "photometric"}
+        weights = shipped_ior_weights()
+        learned = None if weights is None else learned_ior(capture, hull, load_ior_net(weights), config.ior_range,
+                                                            config.device)
+        if learned is not None:
+            found["learned"] = learned.report()
+            if not estimate.reliable and not learned.beyond_trained_range:
+                found.update(value=round(learned.value, 4), uncertainty=round(learned.uncertainty, 4),
+                             method="learned", reliable=learned.uncertainty <= LEARNED_RELIABLE_STD)
         rec.update(found)
-    if not estimate.reliable:
-        why = (f"its minimum is at an end of the range {config.ior_range[0]}-{config.ior_range[1]} (the IoR may lie "
+    if not found["reliable"]:
+        why = (f"the IoR net is unsure (spread {found['uncertainty']:.3f} > {LEARNED_RELIABLE_STD})"
+               if found["method"] == "learned" else
+               f"its minimum is at an end of the range {config.ior_range[0]}-{config.ior_range[1]} (the IoR may lie "
                "beyond it: widen --ior-range)" if estimate.at_bound else
                f"the photos hardly tell the candidates apart (contrast {estimate.contrast:.3f} < {MIN_CONTRAST}: the "
                "mesh explains too little of the refraction)" if estimate.contrast < MIN_CONTRAST else
                f"photos {estimate.photo_width} px wide give a mesh too coarse for it (validated from "
                f"{RELIABLE_MIN_WIDTH} px; at 128 px it is ~0.09 off)")
         warnings.warn(LookingGlassWarning(
-            f"IoR estimate {estimate.value:.3f} +- {estimate.uncertainty:.3f} is not reliable: {why}; errors in the "
-            "shape bias it low. Pass --ior if the material is known"))
+            f"IoR estimate {found['value']:.3f} +- {found['uncertainty']:.3f} is not reliable: {why}. "
+            "Pass --ior if the material is known"))
     return found
 
 
@@ -270,7 +283,8 @@ def _run(scene_dir: Path, out_dir: Path, config: PipelineConfig, wanted: tuple[s
                 refined = _refine(capture, hull, best, weights, config, out_dir, reporter)
                 best, best_stage, rendered = refined.mesh, "refine", refined.rerendering
         write_mesh(out_dir / "mesh.ply", best)
-        estimate = _estimate_ior(capture, best, best_stage, config, reporter) if ior_source == "auto" else None
+        estimate = (_estimate_ior(capture, best, best_stage, hull.mesh, config, reporter) if ior_source == "auto"
+                    else None)
     messages = [str(w.message) for w in caught]
     for message in messages:
         reporter.warn(message)

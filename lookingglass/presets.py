@@ -27,6 +27,7 @@ if TYPE_CHECKING:
     from .capture.config import CaptureConfig
     from .config import PipelineConfig
     from .data.dataset import DatasetConfig
+    from .ior_net import IorTrainConfig
     from .normals.train import TrainConfig
     from .points.train import PointTrainConfig
 
@@ -38,7 +39,7 @@ class Preset:
     """Every config of one named preset. pipeline: `reconstruct`; dataset: `generate` (and the
     image size the networks are trained at); normal_training, point_training: the trainers';
     capture: the real-capture commands' (`sfm`, `envmap-from-ball`, `capture`), the same in every
-    preset."""
+    preset; ior_training: the IoR net's trainer (`train-ior`), the same in every preset."""
 
     name: str
     pipeline: PipelineConfig
@@ -46,12 +47,19 @@ class Preset:
     normal_training: TrainConfig
     point_training: PointTrainConfig
     capture: CaptureConfig = field(default_factory=lambda: _capture_config())
+    ior_training: IorTrainConfig = field(default_factory=lambda: _ior_training_config())
 
 
 def _capture_config() -> CaptureConfig:
     from .capture.config import CaptureConfig
 
     return CaptureConfig()
+
+
+def _ior_training_config() -> IorTrainConfig:
+    from .ior_net import IorTrainConfig
+
+    return IorTrainConfig()
 
 
 def _cpu() -> Preset:

@@ -1,6 +1,8 @@
 """The learned IoR estimate's parts (lookingglass/ior_net.py): its inputs carry the IoR, its head's
 distribution is read within the user's range, and views that see nothing do not count."""
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -73,3 +75,44 @@ def test_views_that_see_nothing_do_not_count():
         extra = torch.cat([views, torch.rand(1, 1, cfg.in_channels, 48, 64)], 1)
         padded = net(extra, torch.cat([masks, torch.zeros(1, 1, 48, 64, dtype=torch.bool)], 1))
     assert torch.allclose(base, padded, atol=1e-5)
+
+
+@pytest.fixture(scope="module")
+def varied(tmp_path_factory):
+    """4 scenes of 5 views at 64x48, each its own IoR in [1.3, 1.7]."""
+    from lookingglass.data.dataset import DatasetConfig, generate_dataset
+
+    root = tmp_path_factory.mktemp("ior_data")
+    cfg = DatasetConfig(width=64, height=48, envmap_height=32, samples_per_axis=1, ior_range=(1.3, 1.7))
+    generate_dataset(root / "data", 4, views=5, split="train", seed=0, config=cfg, workers=1)
+    return root / "data"
+
+
+def test_training_caches_inputs_resumes_exactly_and_ships_weights(varied, tmp_path):
+    """train-ior's loop: one cached input file a scene (the true IoR in it), finite losses logged
+    per epoch, weights that load back as the IoR net and read a capture within the range asked
+    for; interrupted after 5 steps and resumed, the run ends with the uninterrupted run's weights."""
+    from safetensors.torch import load_file
+
+    from lookingglass.data.torch_dataset import TransparentSceneDataset
+    from lookingglass.ior_net import IorTrainConfig, learned_ior, load_ior_net, train_ior_net
+
+    ds = TransparentSceneDataset(varied, "train")
+    config = IorTrainConfig(epochs=2, checkpoint_every=2)
+    whole, parts = tmp_path / "whole", tmp_path / "parts"
+    train_ior_net(ds, whole, config)
+    cached = sorted((whole / "features").glob("scene_*.npz"))
+    assert len(cached) == 4
+    with np.load(cached[0]) as z:
+        assert z["views"].shape == (5, config.net.in_channels, 96, 128) and z["views"].dtype == np.float16
+        assert float(z["ior"]) == pytest.approx(ds.meta(0)["ior"]) and 1.3 <= float(z["ior"]) <= 1.7
+    logged = [json.loads(line) for line in (whole / "metrics.jsonl").read_text().splitlines()]
+    assert [m["epoch"] for m in logged] == [1, 2] and all(np.isfinite(m["loss"]) for m in logged)
+    train_ior_net(ds, parts, config, max_steps=5)
+    train_ior_net(ds, parts, config)
+    a, b = load_file(str(whole / "weights.safetensors")), load_file(str(parts / "weights.safetensors"))
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    net = load_ior_net(whole / "weights.safetensors")
+    found = learned_ior(ds.capture(0), ds.hull(0).mesh, net, (1.5, 1.6))
+    assert 1.5 <= found.value <= 1.6 and found.uncertainty >= 0 and not found.beyond_trained_range
+    assert learned_ior(ds.capture(0), ds.hull(0).mesh, net, (1.2, 1.6)).beyond_trained_range

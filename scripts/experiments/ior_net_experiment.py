@@ -127,5 +127,17 @@ def score(argv):
           f"{(np.abs(err) <= 0.03).sum()}/{len(err)}, mean std {std.mean():.4f}")
 
 
+def baseline(argv):
+    """No network: the candidate whose error over the explained pixels is lowest (parabola)."""
+    from lookingglass.ior import parabola_minimum
+    views, masks, iors = load(argv[0])
+    cand = np.array(IorNetConfig().candidates)
+    err = views[:, :, 11::2].float().sum((1, 3, 4)) / views[:, :, 12::2].float().sum((1, 3, 4)).clamp(min=1)
+    est = np.array([parabola_minimum(e.numpy(), cand) for e in err])
+    d = est - iors.numpy()
+    print(f"baseline: median |err| {np.median(np.abs(d)):.4f}, mean err {d.mean():+.4f}, within 0.03: "
+          f"{(np.abs(d) <= 0.03).sum()}/{len(d)}")
+
+
 if __name__ == "__main__":
-    {"cache": cache, "train": train, "score": score}[sys.argv[1]](sys.argv[2:])
+    {"cache": cache, "train": train, "score": score, "baseline": baseline}[sys.argv[1]](sys.argv[2:])

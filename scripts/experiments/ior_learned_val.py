@@ -1,0 +1,44 @@
+"""The learned IoR estimate (lookingglass/ior_net.py) on a validation set of known, varied IoR
+(`lookingglass generate-validation --out data/val480_ior --ior-range 1.3 1.7`): each scene's hull carved
+as `reconstruct` carves it, then the net, against scene.json's IoR.
+
+    .venv/bin/python scripts/experiments/ior_learned_val.py data/val480_ior WEIGHTS.safetensors
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from lookingglass.capture.scene import load_capture
+from lookingglass.config import PipelineConfig
+from lookingglass.hull import carve_visual_hull
+from lookingglass.ior_net import learned_ior, load_ior_net
+
+
+def main(argv: list[str]) -> int:
+    root, net = Path(argv[0]), load_ior_net(argv[1])
+    config = PipelineConfig(device="cpu")
+    errors = []
+    for name in json.loads((root / "index.json").read_text())["scenes"] if False else sorted(
+            p.name for p in root.iterdir() if (p / "scene.json").exists() or (p / "scene" / "scene.json").exists()):
+        folder = root / name if (root / name / "scene.json").exists() else root / name / "scene"
+        capture = load_capture(folder)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            hull = carve_visual_hull(capture.masks, capture.cameras, config.hull)
+            found = learned_ior(capture, hull.mesh, net, config.ior_range)
+        errors.append(found.value - capture.ior)
+        print(f"{name:16s} true {capture.ior:.4f} learned {found.value:.4f} +- {found.uncertainty:.4f} "
+              f"error {errors[-1]:+.4f} ({found.seconds:.1f} s)", flush=True)
+    errors = np.abs(errors)
+    print(f"median |error| {np.median(errors):.4f}, within 0.03: {(errors <= 0.03).sum()}/{len(errors)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
