@@ -83,6 +83,7 @@ def reconstruct(
     if "ior_estimate" in report:
         found = report["ior_estimate"]
         reporter.info(f"IoR estimate: {found['value']:.3f} +- {found['uncertainty']:.3f}"
+                      + (" (the IoR net's)" if found.get("method") == "learned" else "")
                       + ("" if found["reliable"] else " (not reliable: see the warning)"))
 
 

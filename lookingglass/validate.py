@@ -125,7 +125,9 @@ def evaluate_validation_set(root, out, config: PipelineConfig | None = None, nam
             found = report["ior_estimate"]
             record["ior"] = {"true": float(capture.ior), "estimate": found["value"],
                              "uncertainty": found["uncertainty"], "reliable": found["reliable"],
-                             "contrast": found["contrast"], "seconds": found["seconds"]}
+                             "method": found.get("method", "photometric"), "contrast": found["contrast"],
+                             "seconds": found["seconds"],
+                             **({"learned": found["learned"]["value"]} if "learned" in found else {})}
         with torch.inference_mode():
             record.update(normal_errors(out / name, capture, gt, hull))
         # how well each mesh explains the photos (render/compare.py); the refine stage has already

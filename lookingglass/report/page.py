@@ -114,6 +114,7 @@ def side_panel(data: ReportData) -> str:
         found = r.get("ior_estimate")
         rows.append(("IoR", f'{r["ior"]:.4f} <span class="muted">({escape(str(r.get("ior_source")))})</span>' +
                      (f'; estimated {found["value"]:.3f} ± {found["uncertainty"]:.3f} from the photos'
+                      + (' <span class="muted">(the IoR net)</span>' if found.get("method") == "learned" else "")
                       + ('' if found["reliable"] else ' <span class="worse">(not reliable)</span>') if found else "")))
     if r.get("warnings"):
         rows.append(("warnings", f'<a href="#warnings" class="worse">{len(r["warnings"])}</a>'))
