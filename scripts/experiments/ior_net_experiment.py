@@ -115,8 +115,18 @@ def score(argv):
     net.eval()
     with torch.no_grad():
         est, std = [], []
+        subsets, nviews = opt(argv, "--subsets", 0), opt(argv, "--views", 6)
+        g = torch.Generator().manual_seed(0)
         for i in range(len(iors)):
-            mean, sd = posterior_estimate(net(views[i:i + 1].float(), masks[i:i + 1]), cfg.bin_centres())
+            if subsets:  # the mean of the distributions over random view subsets
+                probs = 0
+                for _ in range(subsets):
+                    sel = torch.randperm(views.shape[1], generator=g)[:nviews]
+                    probs = probs + torch.softmax(net(views[i:i + 1, sel].float(), masks[i:i + 1, sel]), -1)
+                logits = torch.log(probs / subsets)
+            else:
+                logits = net(views[i:i + 1].float(), masks[i:i + 1])
+            mean, sd = posterior_estimate(logits, cfg.bin_centres())
             est.append(float(mean))
             std.append(float(sd))
     est, std = np.array(est), np.array(std)
