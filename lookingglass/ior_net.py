@@ -16,7 +16,7 @@ built from `NormalInputs`, the normal stage's own inputs, by `scene_inputs`, whi
 
 Measured (docs/results.md, "Glass of unknown IoR"): on the variable-IoR test split (128x96) the
 median error is 0.051 where the search on the refined mesh gave 0.091; on 480x360 captures the
-search, where its curve is deep, is better (0.006), so `reconstruct` keeps it there.
+search is better (0.009 against 0.049), so `reconstruct` keeps it there.
 """
 
 from __future__ import annotations

@@ -134,8 +134,10 @@ def _estimate_ior(capture: Capture, mesh: trimesh.Trimesh, mesh_stage: str, hull
                   config: PipelineConfig, reporter: Reporter) -> dict:
     """`--ior auto`: the IoR at which the kept mesh best explains the photos (lookingglass/ior.py) and
     the IoR net's reading of the photos against the hull (lookingglass/ior_net.py, where weights
-    ship); the search's value where its curve is trusted, else the net's (docs/results.md, "Glass
-    of unknown IoR"); a warning when neither is to be trusted."""
+    ship). The search's value from photos RELIABLE_MIN_WIDTH wide (there it beats the net even where
+    its curve is flat), the net's below, where the search runs low (docs/results.md, "Glass of
+    unknown IoR"); the other's value is kept in the report. A warning when the value is not to be
+    trusted."""
     with reporter.stage("ior", "IoR estimate") as rec:
         estimate = estimate_ior(mesh, capture, config.ior_range, device=config.device)
         found = {**estimate.report(), "mesh_from": mesh_stage, "method": "photometric"}
@@ -144,7 +146,8 @@ def _estimate_ior(capture: Capture, mesh: trimesh.Trimesh, mesh_stage: str, hull
                                                             config.device)
         if learned is not None:
             found["learned"] = learned.report()
-            if not estimate.reliable and not learned.beyond_trained_range:
+            if estimate.photo_width < RELIABLE_MIN_WIDTH and not learned.beyond_trained_range:
+                found["photometric"] = {k: found[k] for k in ("value", "uncertainty", "reliable")}
                 found.update(value=round(learned.value, 4), uncertainty=round(learned.uncertainty, 4),
                              method="learned", reliable=learned.uncertainty <= LEARNED_RELIABLE_STD)
         rec.update(found)

@@ -165,10 +165,12 @@ def test_reconstruct_ior_auto(scene, tmp_path):
     assert found["range"] == [1.3, 1.7] and len(found["cost"]) == len(found["candidates"]) == 17
     assert found["photo_width"] == 64  # 64x48 photos: below RELIABLE_MIN_WIDTH, the search is not trusted ...
     assert any(s["name"] == "ior" and s["seconds"] > 0 for s in report["stages"])
-    # ... so the IoR net's reading is the value (its weights ship), reliable only where its spread is small
-    learned = found["learned"]
+    # ... so the IoR net's reading is the value (its weights ship), reliable only where its spread is small;
+    # the search's own stays beside it
+    learned, searched = found["learned"], found["photometric"]
     assert found["method"] == "learned" and (found["value"], found["uncertainty"]) == (learned["value"],
                                                                                       learned["uncertainty"])
+    assert 1.3 <= searched["value"] <= 1.7 and not searched["reliable"]
     assert learned["trained_range"] == [1.3, 1.7] and not learned["beyond_trained_range"]
     assert found["reliable"] == (learned["uncertainty"] <= LEARNED_RELIABLE_STD)
     flagged = [w for w in report["warnings"] if w.startswith("IoR estimate")]
