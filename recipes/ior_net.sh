@@ -21,6 +21,6 @@ generate_ior() {
 }
 
 OMP_NUM_THREADS=2 GENERATE=generate_ior step ior10 "$DATA/ior_train" 10 800 \
-    "${LG[@]}" train-ior --data "$DATA/ior_train" --out "$RUNS/ior10" --epochs 16 --lr-halve-epochs 4 --device cpu
+    "${LG[@]}" train-ior --data "$DATA/ior_train" --out "$RUNS/ior10" --device cpu
 
 install_weights ior10 ior_net

@@ -116,3 +116,17 @@ def test_training_caches_inputs_resumes_exactly_and_ships_weights(varied, tmp_pa
     found = learned_ior(ds.capture(0), ds.hull(0).mesh, net, (1.5, 1.6))
     assert 1.5 <= found.value <= 1.6 and found.uncertainty >= 0 and not found.beyond_trained_range
     assert learned_ior(ds.capture(0), ds.hull(0).mesh, net, (1.2, 1.6)).beyond_trained_range
+
+
+def test_training_refuses_scenes_of_one_ior(tmp_path):
+    """A dataset whose scenes all share one IoR cannot teach the net anything: refused, naming the
+    folder and the `generate` option that makes the right data, before any work."""
+    from types import SimpleNamespace
+
+    from lookingglass.errors import LookingGlassError
+    from lookingglass.ior_net import IorTrainConfig, train_ior_net
+
+    fixed = SimpleNamespace(config=SimpleNamespace(ior_range=(1.4723, 1.4723)), split_dir=tmp_path / "data" / "train")
+    with pytest.raises(LookingGlassError, match="--ior-range") as err:
+        train_ior_net(fixed, tmp_path / "run", IorTrainConfig())
+    assert "train" in str(err.value) and not (tmp_path / "run").exists()
