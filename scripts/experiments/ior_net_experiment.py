@@ -1,6 +1,7 @@
 """Feasibility of the learned IoR estimate (lookingglass/ior_net.py): cache inputs, train, score.
 
-    python scripts/experiments/ior_net_experiment.py cache DATA SPLIT CACHE [--first N --last M --noise P]
+    python scripts/experiments/ior_net_experiment.py cache DATA SPLIT CACHE [--noise P]
+    python scripts/experiments/ior_net_experiment.py baseline CACHE     # the cost curve's minimum, no network
     python scripts/experiments/ior_net_experiment.py train CACHE_TRAIN OUT.safetensors [--epochs E]
     python scripts/experiments/ior_net_experiment.py score CACHE_TEST WEIGHTS
 """
@@ -9,17 +10,14 @@ from __future__ import annotations
 
 import sys
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from lookingglass.capture.images import exposure_factor
-from lookingglass.data.torch_dataset import TransparentSceneDataset, as_8bit_photo
-from lookingglass.ior_net import IorNet, IorNetConfig, ior_net_inputs, posterior_estimate, soft_labels
-from lookingglass.normals.inputs import NormalInputs
-from lookingglass.physics.constants import IOR_GLASS
+from lookingglass.data.torch_dataset import TransparentSceneDataset
+from lookingglass.ior_net import IorNet, IorNetConfig, IorTrainConfig, posterior_estimate, prepare_cache, soft_labels
+from lookingglass.progress import Reporter
 
 
 def opt(argv, name, default):
@@ -27,37 +25,16 @@ def opt(argv, name, default):
 
 
 def cache(argv):
+    """`train-ior`'s own cache (lookingglass.ior_net.prepare_cache) of any split, in OUT/features."""
     data, split, out = argv[0], argv[1], Path(argv[2])
-    out.mkdir(parents=True, exist_ok=True)
     ds = TransparentSceneDataset(data, split)
-    first, last = opt(argv, "--first", 0), min(opt(argv, "--last", len(ds)), len(ds))
-    noise = opt(argv, "--noise", 0.0)
-    cfg = IorNetConfig()
-    t0 = time.time()
-    for i in range(first, last):
-        name = out / f"{ds.scene_dirs[i].name}.npz"
-        if name.exists():
-            continue
-        cap = ds.capture(i, IOR_GLASS)
-        images = cap.images
-        rng = np.random.default_rng([i, 17])
-        if rng.random() < noise:  # an 8-bit phone photo
-            f = exposure_factor(torch.as_tensor(images), 0.5)
-            lin = (torch.as_tensor(images) * f).clamp(0, 1)
-            images = (as_8bit_photo(lin, float(rng.uniform(0, 0.02)), rng) / f).numpy()
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            x = NormalInputs.from_capture(images, cap.masks, cap.envmap, cap.cameras, IOR_GLASS, ds.hull(i).mesh,
-                                          128, 96, 128)
-            views = ior_net_inputs(x, ds.hull(i).mesh, cfg.candidates)
-        tmp = name.with_suffix(".tmp.npz")
-        np.savez(tmp, views=views.numpy().astype(np.float16), mask=x.mask.numpy(), ior=ds.meta(i)["ior"])
-        tmp.rename(name)
-        print(f"{i} {ds.meta(i)['ior']:.4f} {time.time() - t0:.0f}s", flush=True)
+    made = prepare_cache(ds, out, IorTrainConfig(photo_noise=opt(argv, "--noise", 0.0)), Reporter())
+    print(f"made {made} of {len(ds)}")
 
 
 def load(cache_dir):
-    files = sorted(Path(cache_dir).glob("scene_*.npz"))
+    folder = Path(cache_dir) / "features" if (Path(cache_dir) / "features").is_dir() else Path(cache_dir)
+    files = sorted(folder.glob("scene_*.npz"))
     views, masks, iors = [], [], []
     for f in files:
         d = np.load(f)
