@@ -15,8 +15,8 @@ built from `NormalInputs`, the normal stage's own inputs, by `scene_inputs`, whi
 `reconstruct` and the training cache call.
 
 Measured (docs/results.md, "Glass of unknown IoR"): on the variable-IoR test split (128x96) the
-median error is 0.051 where the search on the refined mesh gave 0.091; on 480x360 captures the
-search is better (0.009 against 0.049), so `reconstruct` keeps it there.
+median error is 0.044 where the search on the refined mesh gave 0.091; on 480x360 captures the
+search is better (0.009 against 0.051), so `reconstruct` keeps it there.
 """
 
 from __future__ import annotations
@@ -183,8 +183,8 @@ class IorTrainConfig:
     checkpoint_every: int = setting(200, "Steps between checkpoints.", range=(1, None))
     seed: int = setting(0, "Initialization, shuffling and view-sampling seed.")
     max_scenes: int = setting(0, "Use only the first N scenes (0: all).", range=(0, None))
-    min_views: int = setting(3, "Fewest views a step shows the net.", range=(1, None))
-    max_views: int = setting(6, "Most views a step shows the net.", range=(1, None))
+    min_views: int = setting(5, "Fewest views a step shows the net.", range=(1, None))
+    max_views: int = setting(10, "Most views a step shows the net.", range=(1, None))
     photo_noise: float = setting(0.5, "Share of scenes cached as noisy 8-bit photos.", range=(0, 1))
     label_sigma: float = setting(0.01, "Width of the Gaussian target around the true IoR.", range=(0, None))
     init: str = setting("", "Start from these weights.safetensors (same network config).")
@@ -278,7 +278,8 @@ def train_ior_net(dataset, run_dir: str | os.PathLike, config: IorTrainConfig, d
         if not lo <= ior <= hi:
             raise LookingGlassError(f"scene IoR {ior} is outside the net's range {lo}-{hi}", path)
         g = torch.Generator().manual_seed(config.seed * 1_000_003 + global_step)
-        count = int(torch.randint(config.min_views, min(config.max_views, len(mask)) + 1, (1,), generator=g))
+        most = min(config.max_views, len(mask))  # scenes of fewer views than asked show all they have
+        count = int(torch.randint(min(config.min_views, most), most + 1, (1,), generator=g))
         chosen = torch.randperm(len(mask), generator=g)[:count]
         v = torch.from_numpy(views)[chosen].float().unsqueeze(0).to(device)
         m = torch.from_numpy(mask)[chosen].unsqueeze(0).to(device)
