@@ -111,9 +111,13 @@ def main() -> int:
         lines += ["", f"The refine stage's steps (the first run; they overlap): {refine_line}."]
     if estimates:
         e = estimates[0]
-        lines += ["", f"The IoR estimate (the stage `ior`, 17 renders of the kept mesh at 120 px): {e['value']:.4f} +- "
-                  f"{e['uncertainty']:.4f}, {'reliable' if e['reliable'] else 'flagged unreliable'} (contrast "
-                  f"{e['contrast']:.3f}); the scene's glass is 1.4723."]
+        net = e.get("learned")
+        lines += ["", f"The IoR estimate (the stage `ior`: the search, 17 renders of the kept mesh at 120 px"
+                  + (", and the IoR net" if net else "") + f"): {e['value']:.4f} +- {e['uncertainty']:.4f} "
+                  f"({'the net' if e.get('method') == 'learned' else 'the search'}), "
+                  f"{'reliable' if e['reliable'] else 'flagged unreliable'} (contrast {e['contrast']:.3f})"
+                  + (f"; the net's {net['value']:.4f} +- {net['uncertainty']:.4f} in {net['seconds']:.2f} s" if net
+                     else "") + "; the scene's glass is 1.4723."]
     section = ROOT / "docs" / ("benchmarks_pipeline_cuda.md" if gpu else "benchmarks_pipeline_ior.md" if auto
                                else "benchmarks_pipeline.md")
     section.write_text("\n".join(lines) + "\n")
