@@ -161,8 +161,9 @@ def _estimate_ior(capture: Capture, mesh: trimesh.Trimesh, mesh_stage: str, hull
                f"photos {estimate.photo_width} px wide give a mesh too coarse for it (validated from "
                f"{RELIABLE_MIN_WIDTH} px; at 128 px it is ~0.09 off)")
         warnings.warn(LookingGlassWarning(
-            f"IoR estimate {found['value']:.3f} +- {found['uncertainty']:.3f} is not reliable: {why}. "
-            "Pass --ior if the material is known"))
+            f"IoR estimate {found['value']:.3f} +- {found['uncertainty']:.3f} is not reliable: {why}"
+            + ("" if found["method"] == "learned" else "; errors in the shape bias it low")
+            + ". Pass --ior if the material is known"))
     return found
 
 
