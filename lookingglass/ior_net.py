@@ -298,7 +298,6 @@ def train_ior_net(dataset, run_dir: str | os.PathLike, config: IorTrainConfig, d
 
 
 # ---- inference --------------------------------------------------------------------------------------
-SHIPPED_IOR_WEIGHTS = "ior_net.safetensors"  # in lookingglass/weights/, with its JSON
 # The net's spread (its distribution's standard deviation) up to which its value is called reliable.
 LEARNED_RELIABLE_STD = 0.03
 
@@ -307,8 +306,8 @@ LEARNED_RELIABLE_STD = 0.03
 class LearnedIor:
     """The net's reading of one capture: value and uncertainty (the mean and standard deviation of
     its distribution over `centres`, restricted to the range asked for), the distribution itself,
-    whether the range asked for reaches beyond the net's (its estimate then cannot say so), and the
-    seconds it took."""
+    whether the range asked for reaches beyond the net's (its estimate then cannot say so), the
+    seconds it took and the view count the net was trained for (0: not said)."""
 
     value: float
     uncertainty: float
@@ -316,18 +315,21 @@ class LearnedIor:
     probabilities: np.ndarray
     beyond_trained_range: bool
     seconds: float
+    trained_views: int = 0
 
     def report(self) -> dict:
         return {"value": round(self.value, 4), "uncertainty": round(self.uncertainty, 4),
                 "trained_range": [round(float(self.centres[0]), 4), round(float(self.centres[-1]), 4)],
-                "beyond_trained_range": self.beyond_trained_range, "seconds": round(self.seconds, 2)}
+                "beyond_trained_range": self.beyond_trained_range, "seconds": round(self.seconds, 2),
+                "trained_views": self.trained_views}
 
 
-def shipped_ior_weights() -> Path | None:
-    from .weights import WEIGHTS_DIR
+def shipped_ior_weights(num_views: int) -> tuple[Path | None, int]:
+    """The packaged IoR net for the trained view count nearest `num_views` (lookingglass/weights/
+    ior_VVviews.safetensors) and that count; (None, 0) if none ships."""
+    from .weights import shipped_weights
 
-    path = WEIGHTS_DIR / SHIPPED_IOR_WEIGHTS
-    return path if path.exists() else None
+    return shipped_weights(num_views, "ior")
 
 
 def load_ior_net(path: str | os.PathLike) -> IorNet:

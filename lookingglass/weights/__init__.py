@@ -1,7 +1,7 @@
 """Network weights: saving, loading and the shipped files, in one place for inference and training.
 
 A weights file is `NAME.safetensors` (tensors only: never unpickled) with `NAME.json` beside it:
-{"net": the network's config dataclass as a dict, "kind": "normals" | "points", ...provenance}.
+{"net": the network's config dataclass as a dict, "kind": "normals" | "points" | "ior", ...provenance}.
 The packaged weights live in this folder as `{kind}_{VV}views.safetensors`, one pair per trained
 view count; `shipped_weights` picks the nearest.
 """
@@ -29,7 +29,7 @@ DEFAULT_ENVMAP_HEIGHT = 128
 
 
 def shipped_weights(num_views: int, kind: str = "normals") -> tuple[Path | None, int]:
-    """The packaged weights of `kind` ("normals" or "points") for the trained view count nearest
+    """The packaged weights of `kind` ("normals", "points" or "ior") for the trained view count nearest
     `num_views` (ties: the larger count), and that count; (None, 0) if none ship."""
     available = [v for v in TRAINED_VIEWS if (WEIGHTS_DIR / f"{kind}_{v:02d}views.safetensors").exists()]
     if not available:

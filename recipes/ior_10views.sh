@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
-# Rebuild lookingglass/weights/ior_net.safetensors (+ .json): the IoR net that `reconstruct --ior auto` reads
+# Rebuild lookingglass/weights/ior_10views.safetensors (+ .json): the IoR net that `reconstruct --ior auto` reads
 # (issue 22; lookingglass/ior_net.py), trained from scratch on 800 10-view scenes of IoRs drawn in [1.3, 1.7].
 #
 # Time on a 2-core CPU: ~27 min of data (2 workers), ~20 min of inputs (the hull traced and rendered at 9 IoRs a
 # scene, one process), ~4 min of training (16 epochs of 800 steps, ~13 s an epoch with 2 threads).
-# Provenance: lookingglass/weights/ior_net.json. Usage: bash recipes/ior_net.sh (settings: recipes/_lib.sh).
+# Provenance: lookingglass/weights/ior_10views.json. Usage: bash recipes/ior_10views.sh (settings: recipes/_lib.sh).
 # Steps are skipped when their weights exist and resume when interrupted.
 #
 # Where this differs from the recorded run: the inputs were cached by scripts/experiments/ior_net_experiment.py
@@ -23,4 +23,4 @@ generate_ior() {
 OMP_NUM_THREADS=2 GENERATE=generate_ior step ior10 "$DATA/ior_train" 10 800 \
     "${LG[@]}" train-ior --data "$DATA/ior_train" --out "$RUNS/ior10" --device cpu
 
-install_weights ior10 ior_net
+install_weights ior10 ior_10views
