@@ -305,23 +305,20 @@ LEARNED_RELIABLE_STD = 0.03
 @dataclass
 class LearnedIor:
     """The net's reading of one capture: value and uncertainty (the mean and standard deviation of
-    its distribution over `centres`, restricted to the range asked for), the distribution itself,
-    whether the range asked for reaches beyond the net's (its estimate then cannot say so), the
-    seconds it took and the view count the net was trained for (0: not said)."""
+    its distribution over its bins, restricted to the range asked for), the range its bins span,
+    whether the range asked for reaches beyond it (its estimate then cannot say so), and the seconds
+    it took."""
 
     value: float
     uncertainty: float
-    centres: np.ndarray
-    probabilities: np.ndarray
+    trained_range: tuple[float, float]
     beyond_trained_range: bool
     seconds: float
-    trained_views: int = 0
 
     def report(self) -> dict:
         return {"value": round(self.value, 4), "uncertainty": round(self.uncertainty, 4),
-                "trained_range": [round(float(self.centres[0]), 4), round(float(self.centres[-1]), 4)],
-                "beyond_trained_range": self.beyond_trained_range, "seconds": round(self.seconds, 2),
-                "trained_views": self.trained_views}
+                "trained_range": [round(r, 4) for r in self.trained_range],
+                "beyond_trained_range": self.beyond_trained_range, "seconds": round(self.seconds, 2)}
 
 
 def shipped_ior_weights(num_views: int) -> tuple[Path | None, int]:
@@ -350,10 +347,7 @@ def learned_ior(capture, hull: trimesh.Trimesh, net: IorNet, ior_range: tuple[fl
                                    device=device)
         net = net.to(device)
         logits = net(views.unsqueeze(0), mask.unsqueeze(0)).cpu()
-    centres = net.cfg.bin_centres()
-    mean, std = posterior_estimate(logits, centres, ior_range)
-    kept = (centres >= ior_range[0] - 1e-9) & (centres <= ior_range[1] + 1e-9)
-    probabilities = torch.softmax(logits[0].masked_fill(~kept, -torch.inf) if kept.any() else logits[0], -1)
-    beyond = ior_range[0] < centres[0] - 1e-9 or ior_range[1] > centres[-1] + 1e-9
-    return LearnedIor(float(mean), float(std), centres.numpy(), probabilities.numpy(), bool(beyond),
-                      time.perf_counter() - start)
+    mean, std = posterior_estimate(logits, net.cfg.bin_centres(), ior_range)
+    lo, hi = (float(b) for b in net.cfg.bin_range)
+    beyond = ior_range[0] < lo - 1e-9 or ior_range[1] > hi + 1e-9
+    return LearnedIor(float(mean), float(std), (lo, hi), beyond, time.perf_counter() - start)

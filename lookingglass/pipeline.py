@@ -142,11 +142,10 @@ def _estimate_ior(capture: Capture, mesh: trimesh.Trimesh, mesh_stage: str, hull
         estimate = estimate_ior(mesh, capture, config.ior_range, device=config.device)
         found = {**estimate.report(), "mesh_from": mesh_stage, "method": "photometric"}
         weights, trained_views = shipped_ior_weights(capture.num_views)
-        learned = None if weights is None else dataclasses.replace(
-            learned_ior(capture, hull, load_ior_net(weights), config.ior_range, config.device),
-            trained_views=trained_views)
+        learned = None if weights is None else learned_ior(capture, hull, load_ior_net(weights), config.ior_range,
+                                                            config.device)
         if learned is not None:
-            found["learned"] = learned.report()
+            found["learned"] = {**learned.report(), "trained_views": trained_views}
             if estimate.photo_width < RELIABLE_MIN_WIDTH and not learned.beyond_trained_range:
                 found["photometric"] = {k: found[k] for k in ("value", "uncertainty", "reliable")}
                 found.update(value=round(learned.value, 4), uncertainty=round(learned.uncertainty, 4),

@@ -7,7 +7,6 @@ as `reconstruct` carves it, then the net, against scene.json's IoR.
 
 from __future__ import annotations
 
-import json
 import sys
 import warnings
 from pathlib import Path
@@ -24,9 +23,8 @@ def main(argv: list[str]) -> int:
     root, net = Path(argv[0]), load_ior_net(argv[1])
     config = PipelineConfig(device="cpu")
     errors = []
-    for name in json.loads((root / "index.json").read_text())["scenes"] if False else sorted(
-            p.name for p in root.iterdir() if (p / "scene.json").exists() or (p / "scene" / "scene.json").exists()):
-        folder = root / name if (root / name / "scene.json").exists() else root / name / "scene"
+    for name in sorted(p.name for p in root.iterdir() if (p / "scene" / "scene.json").exists()):
+        folder = root / name / "scene"
         capture = load_capture(folder)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")

@@ -1,22 +1,21 @@
-"""Feasibility of the learned IoR estimate (lookingglass/ior_net.py): cache inputs, train, score.
+"""The learned IoR estimate (lookingglass/ior_net.py) on a split of known IoRs: cache its inputs, score a net
+(trained by `lookingglass train-ior`), or score the plain cost curve's minimum.
 
     python scripts/experiments/ior_net_experiment.py cache DATA SPLIT CACHE [--noise P]
     python scripts/experiments/ior_net_experiment.py baseline CACHE     # the cost curve's minimum, no network
-    python scripts/experiments/ior_net_experiment.py train CACHE_TRAIN OUT.safetensors [--epochs E]
     python scripts/experiments/ior_net_experiment.py score CACHE_TEST WEIGHTS
 """
 
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from lookingglass.data.torch_dataset import TransparentSceneDataset
-from lookingglass.ior_net import IorNet, IorNetConfig, IorTrainConfig, posterior_estimate, prepare_cache, soft_labels
+from lookingglass.ior_net import IorNet, IorNetConfig, IorTrainConfig, posterior_estimate, prepare_cache
 from lookingglass.progress import Reporter
 
 
@@ -42,45 +41,6 @@ def load(cache_dir):
         masks.append(torch.from_numpy(d["mask"]))
         iors.append(float(d["ior"]))
     return torch.stack(views), torch.stack(masks), torch.tensor(iors)
-
-
-def train(argv):
-    views, masks, iors = load(argv[0])
-    out = Path(argv[1])
-    epochs, batch, lr = opt(argv, "--epochs", 30), opt(argv, "--batch", 8), opt(argv, "--lr", 1e-3)
-    torch.manual_seed(0)
-    cfg = IorNetConfig()
-    net = IorNet(cfg)
-    centres = cfg.bin_centres()
-    optim = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
-    n = len(iors)
-    steps = epochs * ((n + batch - 1) // batch)
-    sched = torch.optim.lr_scheduler.OneCycleLR(optim, max_lr=lr, total_steps=steps)
-    g = torch.Generator().manual_seed(0)
-    t0 = time.time()
-    for epoch in range(epochs):
-        perm = torch.randperm(n, generator=g)
-        total, err = 0.0, []
-        for s in range(0, n, batch):
-            idx = perm[s:s + batch]
-            V = views.shape[1]
-            nv = int(torch.randint(4, V + 1, (1,), generator=g))
-            sel = torch.randperm(V, generator=g)[:nv]
-            v = views[idx][:, sel].float()
-            m = masks[idx][:, sel]
-            logits = net(v, m)
-            loss = -(soft_labels(iors[idx], centres) * torch.log_softmax(logits, -1)).sum(-1).mean()
-            optim.zero_grad()
-            loss.backward()
-            optim.step()
-            sched.step()
-            total += float(loss) * len(idx)
-            err.append((posterior_estimate(logits.detach(), centres)[0] - iors[idx]).abs())
-        e = torch.cat(err)
-        print(f"epoch {epoch + 1}: loss {total / n:.4f} median |err| {e.median():.4f} ({time.time() - t0:.0f}s)",
-              flush=True)
-    from safetensors.torch import save_file
-    save_file(net.state_dict(), str(out))
 
 
 def score(argv):
@@ -127,4 +87,4 @@ def baseline(argv):
 
 
 if __name__ == "__main__":
-    {"cache": cache, "train": train, "score": score, "baseline": baseline}[sys.argv[1]](sys.argv[2:])
+    {"cache": cache, "score": score, "baseline": baseline}[sys.argv[1]](sys.argv[2:])
