@@ -146,35 +146,3 @@ def test_gain_head_is_an_extra_output():
     for a, b in ((n1, h1), (n2, h2), (n1, e1), (n2, e2)):
         torch.testing.assert_close(a, b)
     assert gain.shape == (2, 2, 48, 64) and bool(torch.isfinite(gain).all()) and float(gain.std()) > 0
-
-
-def test_hull_scale_channel_widens_to_the_same_function():
-    """Weights without the hull-scale channel load into a net with one (its input weights zero):
-    the same normals whatever the scale; once those weights are nonzero the scale changes them.
-    The channel is log2 of the scale over the mask, clamped to the training range [1, 6]."""
-    torch.manual_seed(0)
-    small = dict(width=64, height=48, enc_channels=(16, 32, 64), use_cost_volume=False)
-    plain = NormalNet(cpu_config(**small)).eval()
-    torch.nn.init.normal_(plain.decoder[-1].weight, std=0.1)  # a residual net starts at the hull's normals
-    scaled = NormalNet(cpu_config(**small, hull_scale_input=True)).eval()
-    assert scaled.cfg.in_channels == plain.cfg.in_channels + 1 == 16
-    scaled.load_state_dict(scaled.widen_initial_state(plain.state_dict(), {"hull_scale_input": False}))
-    image, normals = torch.rand(2, 48, 64, 3), torch.nn.functional.normalize(torch.randn(2, 48, 64, 3), dim=-1)
-    mask = torch.zeros(2, 48, 64, dtype=torch.bool)
-    mask[:, 10:30, 20:40] = True
-    error, tir = torch.rand(2, 48, 64, 3), torch.zeros(2, 48, 64, dtype=torch.bool)
-    base = network_inputs(image, mask, normals, normals, error, tir)
-    for scale, channel in ((1.0, 0.0), (4.0, 2.0), (100.0, math.log2(6.0)), (0.5, 0.0)):
-        x = network_inputs(image, mask, normals, normals, error, tir, hull_scale=scale)
-        torch.testing.assert_close(x[:, :15], base)
-        assert float(x[:, 15][~mask].abs().max()) == 0.0
-        assert math.isclose(float(x[:, 15][mask].min()), channel, abs_tol=1e-6)
-        assert math.isclose(float(x[:, 15][mask].max()), channel, abs_tol=1e-6)
-        with torch.no_grad():
-            for a, b in zip(plain(base), scaled(x)):
-                torch.testing.assert_close(a, b)
-    with torch.no_grad():
-        scaled.enc1[0][0].weight[:, 15] = 0.5
-        far, near = (scaled(network_inputs(image, mask, normals, normals, error, tir, hull_scale=s))[0]
-                     for s in (1.0, 4.0))
-    assert float((far - near).abs().max()) > 1e-3

@@ -64,8 +64,6 @@ def test_capture_and_sample_constructors_agree(scene):
     torch.testing.assert_close(a.image, b.image, atol=1e-3, rtol=0)  # float16 storage
     assert torch.equal(a.mask, b.mask) and torch.equal(a.vh_valid, b.vh_valid)
     torch.testing.assert_close(a.vh_n1, b.vh_n1, atol=2e-3, rtol=0)
-    # the hull carved from masks of the images' own size (meta.json's hull_mask_size)
-    assert a.hull_mask_scale == b.hull_mask_scale == 1.0
     torch.testing.assert_close(a.envmap.radiance, b.envmap.radiance, rtol=1e-6, atol=0)
 
 

@@ -33,7 +33,6 @@ Every item is a dict of tensors (V views, H x W, He x 2He environment):
     factor           ()           float32  the factor applied to the stored radiance
     target_mean      ()           float32  the mean the factor aimed at
     index            ()           int64    the item index
-    hull_mask_scale  ()           float32  the width of the masks the hull was carved from over W
 """
 
 from __future__ import annotations
@@ -212,9 +211,6 @@ class TransparentSceneDataset(Dataset):
         out["factor"] = torch.tensor(factor, dtype=torch.float32)
         out["target_mean"] = torch.tensor(target, dtype=torch.float32)
         out["index"] = torch.tensor(index, dtype=torch.int64)
-        # the hull was carved from masks this many times the images' width (the network's hull-scale input)
-        out["hull_mask_scale"] = torch.tensor(meta.get("hull_mask_size", [meta["width"]])[0] / meta["width"],
-                                              dtype=torch.float32)
         return out
 
 

@@ -40,8 +40,7 @@ class NormalInputs:
     cameras: the views at H x W, capture (or dataset world) frame; vh_n1, vh_n2 (V,H,W,3)
     camera-frame normals of the hull's first and second hits; vh_valid (V,H,W) the hull's
     two-bounce path exists; factor: the exposure factor applied to the original radiance; ior:
-    the object's index of refraction; hull_mask_scale: the width of the masks the hull was carved
-    from over the network's W (how sharp a hull it is)."""
+    the object's index of refraction."""
 
     image: Tensor
     mask: Tensor
@@ -52,16 +51,14 @@ class NormalInputs:
     vh_valid: Tensor
     factor: float
     ior: float = IOR_GLASS
-    hull_mask_scale: float = 1.0
 
     @classmethod
     def from_capture(cls, images, masks, envmap, cameras: Cameras, ior: float, hull: trimesh.Trimesh,
                      width: int, height: int, envmap_height: int, target_mean: float = 0.5,
                      device: str | torch.device = "cpu") -> NormalInputs:
         """images (V,H0,W0,3) linear radiance; masks (V,H0,W0) bool; envmap (He,2He,3) linear in
-        the images' units (numpy or torch); cameras at H0 x W0 and `hull` in the same frame, carved
-        from `masks` as `reconstruct` carves it (so its mask scale is W0 / width). The result lives
-        on `device` (the hull's rays are cast on the CPU either way)."""
+        the images' units (numpy or torch); cameras at H0 x W0 and `hull` in the same frame. The
+        result lives on `device` (the hull's rays are cast on the CPU either way)."""
         images, masks, envmap = (torch.as_tensor(a).to(device) for a in (images, masks, envmap))
         try:
             factor = exposure_factor(images, target_mean)
@@ -72,7 +69,7 @@ class NormalInputs:
         cams = cameras.with_resolution(width, height).to(device)
         env = EnvironmentMap(envmap.float() * factor).resized(envmap_height)
         tb = trace_two_bounce(hull, cams, ior=ior, device=device)
-        return cls(image, mask, env, cams, tb.normal1, tb.normal2, tb.valid, factor, ior, masks.shape[-1] / width)
+        return cls(image, mask, env, cams, tb.normal1, tb.normal2, tb.valid, factor, ior)
 
     @classmethod
     def from_sample(cls, sample: dict, ior: float, device: str | torch.device = "cpu") -> NormalInputs:
@@ -85,8 +82,7 @@ class NormalInputs:
                                device=device)
         channels_last = {k: s[k].permute(0, 2, 3, 1).float() for k in ("image", "vh_n1", "vh_n2")}
         return cls(channels_last["image"], mask, EnvironmentMap(s["envmap"].permute(1, 2, 0).float()), cams,
-                   channels_last["vh_n1"], channels_last["vh_n2"], s["vh_valid"].bool(), float(s["factor"]), ior,
-                   float(s.get("hull_mask_scale", 1.0)))
+                   channels_last["vh_n1"], channels_last["vh_n2"], s["vh_valid"].bool(), float(s["factor"]), ior)
 
     @property
     def num_views(self) -> int:
@@ -104,8 +100,7 @@ def network_tensors(x: NormalInputs, cfg: NormalNetConfig) -> tuple[Tensor, Tens
     """NNet's input channels (V, C, H, W) and cost volume (V, K², 8, H, W) or None, per the
     config's switches (the paper's ablations)."""
     vh_error, vh_tir = x.hull_error if cfg.use_error_map else (None, None)
-    inputs = network_inputs(x.image, x.mask, x.vh_n1, x.vh_n2, vh_error, vh_tir,
-                            x.hull_mask_scale if cfg.hull_scale_input else None)
+    inputs = network_inputs(x.image, x.mask, x.vh_n1, x.vh_n2, vh_error, vh_tir)
     cost_volume = build_cost_volume(x.envmap, x.image, x.mask, x.vh_n1, x.vh_n2, x.cameras, cfg.theta_deg,
                                     cfg.cost_volume_k, x.ior) if cfg.use_cost_volume else None
     return inputs, cost_volume

@@ -53,24 +53,17 @@ class NormalNetConfig:
     # either; docs/history.md). Trained after the normals, on their frozen features.
     gain_head: bool = setting(False, "Also predict, per pixel, how much closer to the truth the predicted N1 and N2 "
                                      "are than the input mesh's (the hull's in training; degrees; ours).")
-    # Ours: how sharp the masks the hull was carved from are, against the net's own images
-    # (log2 of their width ratio, a constant channel over the mask). A hull from 480x360 masks is
-    # far better than one from 128x96 masks, and a net that cannot tell the two apart applies the
-    # corrections the coarse hulls needed to the good ones too (issue 27).
-    hull_scale_input: bool = setting(False, "Also feed log2 of the hull's mask width over the net's input width, so "
-                                            "the net knows how good a hull it corrects (ours).")
 
     # Settings that change no parameter: weights trained at one view count can start (--init)
     # training at another -- the cost volume samples K neighbours whatever the rig -- and weights
     # trained at one image size at another (the net is fully convolutional).
     FINE_TUNE_FREE: ClassVar[frozenset] = frozenset({"num_views", "cost_volume_theta_deg", "width", "height"})
     # Weights without the gain head may start the training of one (NormalNet.widen_initial_state).
-    # Weights without the hull-scale channel may start a fine-tune with one (its input weights zero).
-    FINE_TUNE_WIDEN: ClassVar[frozenset] = frozenset({"gain_head", "hull_scale_input"})
+    FINE_TUNE_WIDEN: ClassVar[frozenset] = frozenset({"gain_head"})
 
     @property
     def in_channels(self) -> int:
-        return (15 if self.use_error_map else 13) + int(self.hull_scale_input)
+        return 15 if self.use_error_map else 13
 
     @property
     def theta_deg(self) -> float:
@@ -193,16 +186,9 @@ class NormalNet(nn.Module):
 
     def widen_initial_state(self, state: dict[str, Tensor], saved_config: dict) -> dict[str, Tensor]:
         """--init weights saved without the gain head start its training: the head keeps its
-        fresh initialization, every other weight is loaded. Weights saved without the hull-scale
-        channel get zero input weights for it (the last input channel), so the fine-tune starts
-        from their predictions."""
+        fresh initialization, every other weight is loaded."""
         own = self.state_dict()
-        state = {**{k: v for k, v in own.items() if k.startswith("gain_head.")}, **state}
-        first = "enc1.0.0.weight"
-        if self.cfg.hull_scale_input and not saved_config.get("hull_scale_input"):
-            w = state[first]
-            state[first] = torch.cat([w, w.new_zeros(w.shape[0], 1, *w.shape[2:])], dim=1)
-        return state
+        return {**{k: v for k, v in own.items() if k.startswith("gain_head.")}, **state}
 
 
 def unit_channels(x: Tensor, eps: float = 1e-6) -> Tensor:
@@ -223,23 +209,15 @@ def to_channels(x: Tensor) -> Tensor:
 HULL_N1_CHANNELS, HULL_N2_CHANNELS = slice(7, 10), slice(10, 13)
 
 
-# The hull-scale channel's range: the training scenes' hulls are carved from masks 1-6 x the net's
-# images (recipes/_lib.sh, generate_users); sharper masks are fed as 6 x.
-HULL_SCALE_MAX = 6.0
-
-
 def network_inputs(image: Tensor, mask: Tensor, vh_n1: Tensor, vh_n2: Tensor, vh_error: Tensor | None,
-                   vh_tir: Tensor | None, hull_scale: float | None = None) -> Tensor:
+                   vh_tir: Tensor | None) -> Tensor:
     """Stack the paper's input channels. image (V,H,W,3) normalized; mask (V,H,W) bool; vh_n1/2
-    (V,H,W,3) camera frame; vh_error (V,H,W,3) Ĩer or None (basic); vh_tir (V,H,W) bool;
-    hull_scale: the hull's mask width over the images' (ours; None: no such channel).
-    Returns (V, 13 or 15, +1 with hull_scale, H, W)."""
+    (V,H,W,3) camera frame; vh_error (V,H,W,3) Ĩer or None (basic); vh_tir (V,H,W) bool.
+    Returns (V, 13 or 15, H, W)."""
     m = mask.unsqueeze(-1).to(image.dtype)
     parts = [image, image * m, m, vh_n1 * m, vh_n2 * m]
     if vh_error is not None:
         parts += [vh_error.mean(-1, keepdim=True), vh_tir.unsqueeze(-1).to(image.dtype) * m]
-    if hull_scale is not None:
-        parts.append(m * math.log2(min(max(hull_scale, 1.0), HULL_SCALE_MAX)))
     return to_channels(torch.cat(parts, dim=-1))
 
 
