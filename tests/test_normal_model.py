@@ -146,3 +146,39 @@ def test_gain_head_is_an_extra_output():
     for a, b in ((n1, h1), (n2, h2), (n1, e1), (n2, e2)):
         torch.testing.assert_close(a, b)
     assert gain.shape == (2, 2, 48, 64) and bool(torch.isfinite(gain).all()) and float(gain.std()) > 0
+
+
+def test_detail_head_starts_as_the_plain_net_and_reads_the_inputs():
+    """Weights without the detail head load into a net with one (its last layer zero): the same
+    normals; once that layer is nonzero the output depends on the full-resolution inputs beyond
+    what the decoder saw, and a pixel's correction moves with the hull normal at that pixel."""
+    torch.manual_seed(0)
+    small = dict(width=64, height=48, enc_channels=(16, 32, 64), use_cost_volume=False)
+    plain = NormalNet(cpu_config(**small)).eval()
+    torch.nn.init.normal_(plain.decoder[-1].weight, std=0.1)  # a residual net starts at the hull's normals
+    detailed = NormalNet(cpu_config(**small, detail_head=True)).eval()
+    detailed.load_state_dict(detailed.widen_initial_state(plain.state_dict(), {}))
+    x = torch.randn(2, 15, 48, 64)
+    with torch.no_grad():
+        for a, b in zip(plain(x), detailed(x)):
+            torch.testing.assert_close(a, b)
+        torch.nn.init.normal_(detailed.detail_head[-1].weight, std=0.1)
+        moved = detailed(x)[0]
+        assert float((moved - plain(x)[0]).abs().max()) > 1e-3
+        # the same latent decoded beside other inputs: only the detail head sees the difference
+        latent = detailed.encode(x)
+        y = x.clone()
+        y[:, 0:3, 20, 30] += 1.0  # one pixel's photo
+        a, b = detailed.decode(latent, x)[0], detailed.decode(latent, y)[0]
+    changed = (a - b).abs().amax(1) > 1e-6
+    assert bool(changed[:, 20, 30].all()) and int(changed.sum()) <= 2 * 25  # within its 5x5 reach
+
+
+def test_detail_head_training_needs_the_head_and_weights():
+    from lookingglass.errors import ConfigError
+    from lookingglass.normals.train import TrainConfig
+
+    with pytest.raises(ConfigError, match="detail head"):
+        TrainConfig(net=cpu_config(), detail_head_only=True, init="w.safetensors")
+    with pytest.raises(ConfigError, match="detail head"):
+        TrainConfig(net=cpu_config(detail_head=True), detail_head_only=True)

@@ -53,13 +53,20 @@ class NormalNetConfig:
     # either; docs/history.md). Trained after the normals, on their frozen features.
     gain_head: bool = setting(False, "Also predict, per pixel, how much closer to the truth the predicted N1 and N2 "
                                      "are than the input mesh's (the hull's in training; degrees; ours).")
+    # Ours: the decoder's correction comes up from 1/8 resolution with no skip link, so it is smooth
+    # where the hull's normals turn a corner within a pixel or two, and bends the edges a good hull has
+    # right (issue 27; docs/history.md, session 51). This head reads the correction and the inputs at
+    # full resolution and adds to the correction (zero-initialized: it starts as the plain net).
+    detail_head: bool = setting(False, "Add a full-resolution head that corrects the decoder's output from the "
+                                       "inputs (the hull's creases; ours).")
 
     # Settings that change no parameter: weights trained at one view count can start (--init)
     # training at another -- the cost volume samples K neighbours whatever the rig -- and weights
     # trained at one image size at another (the net is fully convolutional).
     FINE_TUNE_FREE: ClassVar[frozenset] = frozenset({"num_views", "cost_volume_theta_deg", "width", "height"})
-    # Weights without the gain head may start the training of one (NormalNet.widen_initial_state).
-    FINE_TUNE_WIDEN: ClassVar[frozenset] = frozenset({"gain_head"})
+    # Weights without the gain head or the detail head may start the training of one
+    # (NormalNet.widen_initial_state).
+    FINE_TUNE_WIDEN: ClassVar[frozenset] = frozenset({"gain_head", "detail_head"})
 
     @property
     def in_channels(self) -> int:
@@ -131,6 +138,12 @@ class NormalNet(nn.Module):
         if cfg.gain_head:  # reads the decoder's last features, both normals, the hull's, and how far apart they are
             self.gain_head = nn.Sequential(_conv(c1 + 14, c1, 3, 1, g), nn.Conv2d(c1, 2, 3, 1, 1))
             nn.init.zeros_(self.gain_head[-1].bias)
+        if cfg.detail_head:
+            # per pixel and local (no normalization over the image): a 5 x 5 reach
+            self.detail_head = nn.Sequential(nn.Conv2d(cfg.in_channels + 6, c1, 3, 1, 1), nn.ReLU(inplace=True),
+                                             nn.Conv2d(c1, c1, 1), nn.ReLU(inplace=True), nn.Conv2d(c1, 6, 3, 1, 1))
+            nn.init.zeros_(self.detail_head[-1].weight)
+            nn.init.zeros_(self.detail_head[-1].bias)
         if cfg.use_cost_volume:
             self.fnet = FNet(cfg)
             k2 = cfg.cost_volume_k ** 2
@@ -162,10 +175,12 @@ class NormalNet(nn.Module):
         else None."""
         features = self.decoder[:-1](latent)
         out = torch.tanh(self.decoder[-1](features))
-        n1, n2 = out[:, :3], out[:, 3:]
-        needs_hull = self.cfg.residual or (with_gain and self.cfg.gain_head)
+        needs_hull = self.cfg.residual or (with_gain and self.cfg.gain_head) or self.cfg.detail_head
         if needs_hull and inputs is None:
             raise ValueError("this network decodes relative to the hull normals; pass the inputs")
+        if self.cfg.detail_head:
+            out = out + self.detail_head(torch.cat([out, inputs], 1))
+        n1, n2 = out[:, :3], out[:, 3:]
         if self.cfg.residual:
             n1, n2 = n1 + inputs[:, HULL_N1_CHANNELS], n2 + inputs[:, HULL_N2_CHANNELS]
         n1, n2 = unit_channels(n1), unit_channels(n2)
@@ -185,10 +200,10 @@ class NormalNet(nn.Module):
         return decoded if with_gain else decoded[:2]
 
     def widen_initial_state(self, state: dict[str, Tensor], saved_config: dict) -> dict[str, Tensor]:
-        """--init weights saved without the gain head start its training: the head keeps its
-        fresh initialization, every other weight is loaded."""
+        """--init weights saved without the gain head (or the detail head) start its training: the
+        head keeps its fresh initialization, every other weight is loaded."""
         own = self.state_dict()
-        return {**{k: v for k, v in own.items() if k.startswith("gain_head.")}, **state}
+        return {**{k: v for k, v in own.items() if k.startswith(("gain_head.", "detail_head."))}, **state}
 
 
 def unit_channels(x: Tensor, eps: float = 1e-6) -> Tensor:

@@ -51,6 +51,8 @@ class TrainConfig:
     gain_head_only: bool = setting(False, "Train only the gain head (needs --net.gain-head): every other weight "
                                           "stays as --init gave it; the loss is the quantile (pinball) loss of the "
                                           "predicted gains over the hull's normals.")
+    detail_head_only: bool = setting(False, "Train only the detail head (needs --net.detail-head and --init): every "
+                                            "other weight stays as --init gave it.")
     gain_quantile: float = setting(0.5, "The quantile of the gain over the hull's normals the gain head learns "
                                         "(lower: a more cautious estimate; 0.5: the median).", range=(0, 1))
 
@@ -61,6 +63,9 @@ class TrainConfig:
         if self.gain_head_only and not (self.net.gain_head and self.init):
             raise ConfigError("--gain-head-only trains the gain head of trained normals: it needs --net.gain-head "
                               "and --init")
+        if self.detail_head_only and not (self.net.detail_head and self.init and not self.gain_head_only):
+            raise ConfigError("--detail-head-only trains the detail head of trained normals: it needs "
+                              "--net.detail-head and --init, and not --gain-head-only")
 
 
 # The paper's ablations (Table 1): (use_error_map, use_cost_volume).
@@ -174,9 +179,10 @@ def train_normals(dataset, run_dir: str | os.PathLike, config: TrainConfig, devi
 
     def make_net() -> NormalNet:
         net = NormalNet(config.net)
-        if config.gain_head_only:  # Adam skips what needs no gradient; the normals stay as --init gave them
+        only = "gain_head." if config.gain_head_only else "detail_head." if config.detail_head_only else None
+        if only:  # Adam skips what needs no gradient; the rest stays as --init gave it
             for name, p in net.named_parameters():
-                p.requires_grad_(name.startswith("gain_head."))
+                p.requires_grad_(name.startswith(only))
         return net
 
     return session.fit(make_net, len(dataset), step,
