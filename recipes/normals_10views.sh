@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Rebuild lookingglass/weights/normals_10views.safetensors (+ .json): the 10-view normal net (wr+cv, cpu preset).
 #
-# Time on a 2-core CPU: ~4.5 h (~25 + ~26 min of data; training ~40 + ~85 + ~23 + ~25 + ~20 min).
+# Time on a 2-core CPU: ~4.6 h (~25 + ~26 min of data; training ~40 + ~85 + ~23 + ~25 + ~6 + ~4 min).
 # Provenance: lookingglass/weights/normals_10views.json (2026-11-23). Usage, from a checkout after
 # `bash scripts/setup.sh`:  bash recipes/normals_10views.sh  (settings: recipes/_lib.sh). Every step is skipped
 # when its weights.safetensors exists; an interrupted step resumes from its checkpoint when run again.
@@ -55,13 +55,22 @@ GENERATE=generate_users step normals10angle3 "$DATA/users10" 10 1000 \
     --init "$RUNS/normals10angle2/weights.safetensors" --epochs 3 --lr 5e-5 --lr-halve-epochs 2 --photo-noise 0.5 \
     --max-scenes 1000 --loss angle --out "$RUNS/normals10angle3"
 
-# 6. The gain head (ours; docs/history.md, session 41): per pixel, how many degrees closer to the truth the net's
-#    N1/N2 are than the hull's, trained alone on the frozen normals of step 5 (which stay bit-exact), 2 epochs on the
-#    first 600 scenes, two DDP processes (~10 min an epoch beside a validation run). The refine stage's normal term
-#    reads it.
-GENERATE=generate_users step normals10gain "$DATA/users10" 10 600 \
-    "${DDP[@]}" train-normals --data "$DATA/users10" --views 10 --preset cpu --variant wr+cv --seed 0 \
-    --net.gain-head --gain-head-only --init "$RUNS/normals10angle3/weights.safetensors" --epochs 2 --lr 1e-3 \
-    --lr-halve-epochs 1 --photo-noise 0.5 --max-scenes 600 --out "$RUNS/normals10gain"
+# 6. The detail head (ours; docs/history.md, session 51): a local full-resolution correction of the decoder's output
+#    from the inputs, trained alone on the frozen net of step 5 (angle loss), 2 epochs, a fourth seed, two DDP
+#    processes (~3 min an epoch on a quiet machine). The recorded run started from the shipped net of 2026-11-26
+#    with its gain head dropped, whose other weights are step 5's (the same sha256, 85a5271c).
+GENERATE=generate_users step normals10detail "$DATA/users10" 10 1000 \
+    "${DDP[@]}" train-normals --data "$DATA/users10" --views 10 --preset cpu --variant wr+cv --seed 4 \
+    --net.detail-head --detail-head-only --init "$RUNS/normals10angle3/weights.safetensors" --epochs 2 --lr 1e-3 \
+    --lr-halve-epochs 1 --photo-noise 0.5 --max-scenes 1000 --loss angle --out "$RUNS/normals10detail"
 
-install_weights normals10gain normals_10views
+# 7. The gain head (ours; docs/history.md, session 41): per pixel, how many degrees closer to the truth the net's
+#    N1/N2 are than the hull's, trained alone on the frozen normals of step 6 (which stay bit-exact), 2 epochs on the
+#    first 600 scenes, two DDP processes (~2 min an epoch on a quiet machine). The refine stage's normal term reads
+#    it. (Until 2026-11-28 the shipped net had no detail head and this step started from step 5: runs/normals10gain.)
+GENERATE=generate_users step normals10detailgain "$DATA/users10" 10 600 \
+    "${DDP[@]}" train-normals --data "$DATA/users10" --views 10 --preset cpu --variant wr+cv --seed 0 \
+    --net.gain-head --net.detail-head --gain-head-only --init "$RUNS/normals10detail/weights.safetensors" \
+    --epochs 2 --lr 1e-3 --lr-halve-epochs 1 --photo-noise 0.5 --max-scenes 600 --out "$RUNS/normals10detailgain"
+
+install_weights normals10detailgain normals_10views

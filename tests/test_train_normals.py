@@ -181,3 +181,23 @@ def test_gain_head_learns_a_quantile_and_leaves_the_normals(tiny_dataset, tmp_pa
         TrainConfig(gain_head_only=True, init=str(init))
     with pytest.raises(ConfigError, match="gain-head"):
         dataclasses.replace(config, init="")
+
+
+def test_detail_head_learns_and_leaves_the_rest(tiny_dataset, tmp_path):
+    """--detail-head-only: a detail head added to trained normals (their weights start it) lowers
+    the normal loss while every other weight stays bit-exact."""
+    import dataclasses
+
+    ds = TransparentSceneDataset(tiny_dataset, "train")
+    train_normals(ds, tmp_path / "normals", _config(epochs=1))
+    init = tmp_path / "normals" / "weights.safetensors"
+    config = _config(epochs=3)
+    config = dataclasses.replace(config, net=dataclasses.replace(config.net, detail_head=True), init=str(init),
+                                 detail_head_only=True, lr=1e-2)
+    train_normals(ds, tmp_path / "detail", config)
+    log = [json.loads(line) for line in (tmp_path / "detail" / "metrics.jsonl").read_text().splitlines()]
+    assert log[-1]["loss"] < log[0]["loss"]
+    before, after = load_weights(init).state_dict(), load_weights(tmp_path / "detail" / "weights.safetensors").state_dict()
+    assert set(after) - set(before) == {k for k in after if k.startswith("detail_head.")} != set()
+    for k in before:
+        torch.testing.assert_close(before[k], after[k], rtol=0, atol=0)
