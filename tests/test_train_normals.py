@@ -139,19 +139,7 @@ def test_gain_head_learns_a_quantile_and_leaves_the_normals(tiny_dataset, tmp_pa
     from lookingglass.errors import ConfigError
     from lookingglass.normals.train import NO_N2_GAIN_DEG, gain_head_loss
 
-    ds = TransparentSceneDataset(tiny_dataset, "train")
-    train_normals(ds, tmp_path / "normals", _config(epochs=1))
-    init = tmp_path / "normals" / "weights.safetensors"
-    config = _config(epochs=3)
-    config = dataclasses.replace(config, net=dataclasses.replace(config.net, gain_head=True), init=str(init),
-                                 gain_head_only=True, lr=1e-2)
-    train_normals(ds, tmp_path / "head", config)
-    log = [json.loads(line) for line in (tmp_path / "head" / "metrics.jsonl").read_text().splitlines()]
-    assert log[-1]["loss"] < log[0]["loss"]
-    before, after = load_weights(init).state_dict(), load_weights(tmp_path / "head" / "weights.safetensors").state_dict()
-    assert set(after) - set(before) == {k for k in after if k.startswith("gain_head.")} != set()
-    for k in before:
-        torch.testing.assert_close(before[k], after[k], rtol=0, atol=0)
+    config = _train_head_alone(tiny_dataset, tmp_path, "gain_head")
 
     # 100 pixels: the truth and the prediction at +z, the hull tilted 1..100 degrees from it, so the
     # true gain at pixel i is (i + 1) degrees
@@ -178,26 +166,34 @@ def test_gain_head_learns_a_quantile_and_leaves_the_normals(tiny_dataset, tmp_pa
     gone[..., 50:] = 0
     assert loss(40.0, h1=gone) < min(loss(38.0, h1=gone), loss(42.0, h1=gone))
     with pytest.raises(ConfigError, match="gain-head"):
-        TrainConfig(gain_head_only=True, init=str(init))
+        TrainConfig(gain_head_only=True, init=config.init)
     with pytest.raises(ConfigError, match="gain-head"):
         dataclasses.replace(config, init="")
 
 
-def test_detail_head_learns_and_leaves_the_rest(tiny_dataset, tmp_path):
-    """--detail-head-only: a detail head added to trained normals (their weights start it) lowers
-    the normal loss while every other weight stays bit-exact."""
+def _train_head_alone(tiny_dataset, tmp_path, head: str) -> TrainConfig:
+    """Trained normals, then `head` ("gain_head" or "detail_head") added and trained alone
+    (--init from them, --HEAD-only): its loss falls while every other weight stays bit-exact.
+    Returns the head's training config."""
     import dataclasses
 
     ds = TransparentSceneDataset(tiny_dataset, "train")
     train_normals(ds, tmp_path / "normals", _config(epochs=1))
     init = tmp_path / "normals" / "weights.safetensors"
     config = _config(epochs=3)
-    config = dataclasses.replace(config, net=dataclasses.replace(config.net, detail_head=True), init=str(init),
-                                 detail_head_only=True, lr=1e-2)
-    train_normals(ds, tmp_path / "detail", config)
-    log = [json.loads(line) for line in (tmp_path / "detail" / "metrics.jsonl").read_text().splitlines()]
+    config = dataclasses.replace(config, net=dataclasses.replace(config.net, **{head: True}), init=str(init),
+                                 lr=1e-2, **{f"{head}_only": True})
+    train_normals(ds, tmp_path / "head", config)
+    log = [json.loads(line) for line in (tmp_path / "head" / "metrics.jsonl").read_text().splitlines()]
     assert log[-1]["loss"] < log[0]["loss"]
-    before, after = load_weights(init).state_dict(), load_weights(tmp_path / "detail" / "weights.safetensors").state_dict()
-    assert set(after) - set(before) == {k for k in after if k.startswith("detail_head.")} != set()
+    before, after = load_weights(init).state_dict(), load_weights(tmp_path / "head" / "weights.safetensors").state_dict()
+    assert set(after) - set(before) == {k for k in after if k.startswith(f"{head}.")} != set()
     for k in before:
         torch.testing.assert_close(before[k], after[k], rtol=0, atol=0)
+    return config
+
+
+def test_detail_head_learns_and_leaves_the_rest(tiny_dataset, tmp_path):
+    """--detail-head-only: a detail head added to trained normals (their weights start it) lowers
+    the normal loss while every other weight stays bit-exact."""
+    _train_head_alone(tiny_dataset, tmp_path, "detail_head")
