@@ -53,10 +53,11 @@ class NormalNetConfig:
     # either; docs/history.md). Trained after the normals, on their frozen features.
     gain_head: bool = setting(False, "Also predict, per pixel, how much closer to the truth the predicted N1 and N2 "
                                      "are than the input mesh's (the hull's in training; degrees; ours).")
-    # Ours: the decoder's correction comes up from 1/8 resolution with no skip link, so it is smooth
-    # where the hull's normals turn a corner within a pixel or two, and bends the edges a good hull has
-    # right (issue 27; docs/history.md, session 51). This head reads the correction and the inputs at
-    # full resolution and adds to the correction (zero-initialized: it starts as the plain net).
+    # Ours: the decoder's correction comes up from 1/8 resolution with no skip link. This head reads the
+    # correction and the inputs at full resolution and adds to the correction (zero-initialized: it
+    # starts as the plain net). It sharpens the corrections coarse hulls and smooth shapes need (test
+    # split N1 median 7.96 -> 6.56 deg); it was meant to spare the creases of good CAD hulls and does not
+    # (docs/results.md, issue 27).
     detail_head: bool = setting(False, "Add a full-resolution head that corrects the decoder's output from the "
                                        "inputs (the hull's creases; ours).")
 
