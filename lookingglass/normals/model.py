@@ -59,7 +59,7 @@ class NormalNetConfig:
     # split N1 median 7.96 -> 6.56 deg); it was meant to spare the creases of good CAD hulls and does not
     # (docs/results.md, issue 27).
     detail_head: bool = setting(False, "Add a full-resolution head that corrects the decoder's output from the "
-                                       "inputs (the hull's creases; ours).")
+                                       "inputs (ours).")
 
     # Settings that change no parameter: weights trained at one view count can start (--init)
     # training at another -- the cost volume samples K neighbours whatever the rig -- and weights
