@@ -321,14 +321,6 @@ class LearnedIor:
                 "beyond_trained_range": self.beyond_trained_range, "seconds": round(self.seconds, 2)}
 
 
-def shipped_ior_weights(num_views: int) -> tuple[Path | None, int]:
-    """The packaged IoR net for the trained view count nearest `num_views` (lookingglass/weights/
-    ior_VVviews.safetensors) and that count; (None, 0) if none ships."""
-    from .weights import shipped_weights
-
-    return shipped_weights(num_views, "ior")
-
-
 def load_ior_net(path: str | os.PathLike) -> IorNet:
     """The IoR net from its weights file (eval mode, CPU); refuses other networks' weights."""
     from .weights import load_weights

@@ -37,7 +37,7 @@ from .errors import LookingGlassError, LookingGlassWarning
 from .fileio import staged_dir, write_atomic, write_json
 from .hull import VisualHull, carve_visual_hull
 from .ior import MIN_CONTRAST, RELIABLE_MIN_WIDTH, assumed_ior, estimate_ior
-from .ior_net import LEARNED_RELIABLE_STD, learned_ior, load_ior_net, shipped_ior_weights
+from .ior_net import LEARNED_RELIABLE_STD, learned_ior, load_ior_net
 from .normals.stage import NormalStageResult, run_normal_stage, second_pass, write_normal_views
 from .points.stage import surface_from_normals
 from .progress import Reporter, peak_memory_mb
@@ -141,7 +141,7 @@ def _estimate_ior(capture: Capture, mesh: trimesh.Trimesh, mesh_stage: str, hull
     with reporter.stage("ior", "IoR estimate") as rec:
         estimate = estimate_ior(mesh, capture, config.ior_range, device=config.device)
         found = {**estimate.report(), "mesh_from": mesh_stage, "method": "photometric"}
-        weights, trained_views = shipped_ior_weights(capture.num_views)
+        weights, trained_views = shipped_weights(capture.num_views, "ior")  # the nearest trained view count
         learned = None if weights is None else learned_ior(capture, hull, load_ior_net(weights), config.ior_range,
                                                             config.device)
         if learned is not None:

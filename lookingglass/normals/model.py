@@ -176,9 +176,10 @@ class NormalNet(nn.Module):
         else None."""
         features = self.decoder[:-1](latent)
         out = torch.tanh(self.decoder[-1](features))
-        needs_hull = self.cfg.residual or (with_gain and self.cfg.gain_head) or self.cfg.detail_head
-        if needs_hull and inputs is None:
-            raise ValueError("this network decodes relative to the hull normals; pass the inputs")
+        needs_inputs = self.cfg.residual or (with_gain and self.cfg.gain_head) or self.cfg.detail_head
+        if needs_inputs and inputs is None:
+            raise ValueError("this network decodes from its inputs (the hull normals, the detail head's channels); "
+                             "pass the inputs")
         if self.cfg.detail_head:
             out = out + self.detail_head(torch.cat([out, inputs], 1))
         n1, n2 = out[:, :3], out[:, 3:]

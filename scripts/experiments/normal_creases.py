@@ -15,6 +15,7 @@ from lookingglass.capture.scene import load_capture
 from lookingglass.metrics import load_mesh
 from lookingglass.normals.inputs import NormalInputs
 from lookingglass.normals.predict import network_normals
+from lookingglass.normals.train import angle_deg as angle_channels_first
 from lookingglass.render.tracer import trace_two_bounce
 from lookingglass.weights import load_normal_net
 
@@ -22,7 +23,8 @@ BINS = ((0, 2), (2, 5), (5, 10), (10, 20), (20, 180))
 
 
 def angle_deg(a, b):
-    return torch.rad2deg(torch.acos((a * b).sum(-1).clamp(-1, 1)))
+    """Degrees between unit normals (..., H, W, 3), channels last as the stage's maps are."""
+    return angle_channels_first(a.permute(0, 3, 1, 2), b.permute(0, 3, 1, 2))
 
 
 def crease_deg(normals):
@@ -43,8 +45,7 @@ for name in sys.argv[4].split(","):
     x = NormalInputs.from_capture(cap.images, cap.masks, cap.envmap, cap.cameras, cap.ior,
                                   load_mesh(run / name / "visual_hull.ply"), W, H, weights.envmap_height)
     truth = trace_two_bounce(truth_mesh, cap.cameras.with_resolution(W, H), ior=cap.ior)
-    n1 = network_normals(weights.net, x, None)[0]
-    n1 = n1.permute(0, 2, 3, 1) if n1.shape[1] == 3 else n1
+    n1 = network_normals(weights.net, x, None)[0]  # (V, H, W, 3)
     m = x.mask & truth.mask & x.vh_valid
     hull_err, net_err, crease = angle_deg(x.vh_n1, truth.normal1)[m], angle_deg(n1, truth.normal1)[m], crease_deg(x.vh_n1)[m]
     print(name, "pixels", int(m.sum()))
