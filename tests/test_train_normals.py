@@ -129,6 +129,25 @@ def test_angle_loss_is_the_angle():
         TrainConfig(loss="l1")
 
 
+def test_hull_hinge_weighs_only_the_pixels_made_worse():
+    """--hull-hinge w: a pixel whose prediction is further from the truth than the hull's normal
+    counts (1 + w) x its loss less w x the hull's; one the net improves counts as before; N2 alike
+    over its valid pixels."""
+    from lookingglass.normals.train import normal_loss, pixel_loss
+    tilt = lambda deg: torch.stack([torch.deg2rad(deg).sin(), torch.zeros_like(deg), torch.deg2rad(deg).cos()], 0)
+    truth = tilt(torch.zeros(1, 2)).unsqueeze(0)  # (1,3,1,2)
+    pred = tilt(torch.tensor([[10.0, 10.0]])).unsqueeze(0)
+    hull = tilt(torch.tensor([[4.0, 20.0]])).unsqueeze(0)  # better than pred at pixel 0, worse at pixel 1
+    t = dict(n1=truth, n2=truth, mask=torch.ones(1, 1, 2, dtype=torch.bool),
+             n2_valid=torch.tensor([[[True, False]]]))
+    lp, lh = pixel_loss(pred, truth, "angle").flatten(), pixel_loss(hull, truth, "angle").flatten()
+    plain = normal_loss(pred, pred, t, "angle")
+    torch.testing.assert_close(plain, lp.mean() + lp[0])
+    hinged = normal_loss(pred, pred, t, "angle", (hull, hull), hinge=2.0)
+    torch.testing.assert_close(hinged, plain + 2.0 * (lp[0] - lh[0]) / 2 + 2.0 * (lp[0] - lh[0]))
+    torch.testing.assert_close(normal_loss(pred, pred, t, "angle", (pred, pred), hinge=2.0), plain)
+
+
 def test_gain_head_learns_a_quantile_and_leaves_the_normals(tiny_dataset, tmp_path):
     """--gain-head-only: a head added to trained normals (their weights start it: --init without a
     head) learns while every other weight stays bit-exact; the pinball loss it minimizes is lowest

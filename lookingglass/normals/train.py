@@ -48,6 +48,9 @@ class TrainConfig:
                             "a random initialization.")
     loss: str = setting("l2", "Per-pixel loss: l2 (the paper's squared L2 of the normals) or angle (~ the angle "
                               "itself, so the pixels the hull already has right weigh as much as the wrong ones).")
+    hull_hinge: float = setting(0.0, "Extra weight of the pixels where the net's normal is further from the truth "
+                                     "than the hull's it was fed (issue 27: never worse than the input); 0: none.",
+                                range=(0, None))
     gain_head_only: bool = setting(False, "Train only the gain head (needs --net.gain-head): every other weight "
                                           "stays as --init gave it; the loss is the quantile (pinball) loss of the "
                                           "predicted gains over the hull's normals.")
@@ -107,14 +110,23 @@ def pixel_loss(n: Tensor, t: Tensor, kind: str = "l2") -> Tensor:
     return (sq + ANGLE_LOSS_EPS ** 2).sqrt() - ANGLE_LOSS_EPS
 
 
-def normal_loss(n1: Tensor, n2: Tensor, t: dict, kind: str = "l2") -> Tensor:
+def normal_loss(n1: Tensor, n2: Tensor, t: dict, kind: str = "l2", hull: tuple[Tensor, Tensor] | None = None,
+                hinge: float = 0.0) -> Tensor:
     """L_N: the per-pixel loss (`pixel_loss`; the paper's squared L2) of N1 over the mask plus N2
-    over pixels with a valid GT N2."""
-    m1 = t["mask"].unsqueeze(1).float()
-    m2 = t["n2_valid"].unsqueeze(1).float()
-    l1 = (pixel_loss(n1, t["n1"], kind) * m1).sum() / m1.sum().clamp(min=1)
-    l2 = (pixel_loss(n2, t["n2"], kind) * m2).sum() / m2.sum().clamp(min=1)
-    return l1 + l2
+    over pixels with a valid GT N2. With `hull` (the hull's N1, N2 the net was fed) and `hinge` > 0,
+    each pixel also adds hinge * max(0, its loss - the hull's): a pixel the net makes worse than
+    its input weighs 1 + hinge times."""
+    hull1, hull2 = hull if hull is not None else (None, None)
+    total = 0.0
+    for n, h, target, valid in ((n1, hull1, t["n1"], t["mask"]), (n2, hull2, t["n2"], t["n2_valid"])):
+        m = valid.unsqueeze(1).float()
+        per_pixel = pixel_loss(n, target, kind)
+        if hinge and h is not None:
+            with torch.no_grad():
+                per_hull = pixel_loss(h, target, kind)
+            per_pixel = per_pixel + hinge * (per_pixel - per_hull).clamp(min=0)
+        total = total + (per_pixel * m).sum() / m.sum().clamp(min=1)
+    return total
 
 
 # A pixel whose true path has no second interface has no usable N2: following the predicted N2
@@ -175,7 +187,8 @@ def train_normals(dataset, run_dir: str | os.PathLike, config: TrainConfig, devi
         n1, n2 = model(inputs, cost_volume)
         with torch.no_grad():
             loss_hull = float(normal_loss(inputs[:, HULL_N1_CHANNELS], inputs[:, HULL_N2_CHANNELS], t, config.loss))
-        return normal_loss(n1, n2, t, config.loss), {"loss_hull": loss_hull}
+        hull = (inputs[:, HULL_N1_CHANNELS], inputs[:, HULL_N2_CHANNELS])
+        return normal_loss(n1, n2, t, config.loss, hull, config.hull_hinge), {"loss_hull": loss_hull}
 
     def make_net() -> NormalNet:
         net = NormalNet(config.net)
