@@ -4,8 +4,8 @@
 #
 # Time on a 2-core CPU: ~3 h from scratch: the 10-view net's first run (~25 min of data + ~40 min, via
 # recipes/normals_10views.sh; skipped if already made), then ~15 + ~22 min of 5-view data and ~20 + ~13 + ~21 + ~19 min
-# of training, then ~7 min of data and ~15 min for the gain head.
-# Provenance: lookingglass/weights/normals_05views.json (2026-11-23). Usage: bash recipes/normals_05views.sh
+# of training, then ~7 min of data, ~6 min for the detail head and ~4 min for the gain head.
+# Provenance: lookingglass/weights/normals_05views.json (2026-11-28). Usage: bash recipes/normals_05views.sh
 # (settings: recipes/_lib.sh). Steps are skipped when their weights exist and resume when interrupted.
 #
 # Where this differs from the recorded commands:
@@ -49,13 +49,23 @@ GENERATE=generate_users step normals5angle2 "$DATA/users5" 5 1000 \
     --init "$RUNS/normals5angle/weights.safetensors" --epochs 3 --lr 5e-5 --lr-halve-epochs 2 --photo-noise 0.5 \
     --max-scenes 1000 --loss angle --out "$RUNS/normals5angle2"
 
-# The gain head (as step 6 of recipes/normals_10views.sh; session 44): per pixel, how many degrees closer to the
-# truth the net's N1/N2 are than the normals it was fed, trained alone on the frozen normals above (which stay
-# bit-exact), 2 epochs on the first 600 scenes; two DDP processes (~7 min an epoch beside a validation run). The
-# refine stage's normal term reads it.
-GENERATE=generate_users step normals5gain "$DATA/users5" 5 600 \
-    "${DDP[@]}" train-normals --data "$DATA/users5" --views 5 --preset cpu --variant wr+cv --seed 0 \
-    --net.gain-head --gain-head-only --init "$RUNS/normals5angle2/weights.safetensors" --epochs 2 --lr 1e-3 \
-    --lr-halve-epochs 1 --photo-noise 0.5 --max-scenes 600 --out "$RUNS/normals5gain"
+# The detail head (as step 6 of recipes/normals_10views.sh; docs/history.md, session 51): a local full-resolution
+# correction of the decoder's output, trained alone on the frozen net above (angle loss), 2 epochs, a fourth seed,
+# two DDP processes (~3 min an epoch). The recorded run started from the shipped net of 2026-11-26 with its gain
+# head dropped, whose other weights are the run above's.
+GENERATE=generate_users step normals5detail "$DATA/users5" 5 1000 \
+    "${DDP[@]}" train-normals --data "$DATA/users5" --views 5 --preset cpu --variant wr+cv --seed 4 \
+    --net.detail-head --detail-head-only --init "$RUNS/normals5angle2/weights.safetensors" --epochs 2 --lr 1e-3 \
+    --lr-halve-epochs 1 --photo-noise 0.5 --max-scenes 1000 --loss angle --out "$RUNS/normals5detail"
 
-install_weights normals5gain normals_05views
+# The gain head (as step 7 of recipes/normals_10views.sh; session 44): per pixel, how many degrees closer to the
+# truth the net's N1/N2 are than the normals it was fed, trained alone on the frozen normals above (which stay
+# bit-exact), 2 epochs on the first 600 scenes; two DDP processes (~2 min an epoch). The refine stage's normal term
+# reads it. (Until 2026-11-28 the shipped net had no detail head and this step started from the run before it:
+# runs/normals5gain.)
+GENERATE=generate_users step normals5detailgain "$DATA/users5" 5 600 \
+    "${DDP[@]}" train-normals --data "$DATA/users5" --views 5 --preset cpu --variant wr+cv --seed 0 \
+    --net.gain-head --net.detail-head --gain-head-only --init "$RUNS/normals5detail/weights.safetensors" \
+    --epochs 2 --lr 1e-3 --lr-halve-epochs 1 --photo-noise 0.5 --max-scenes 600 --out "$RUNS/normals5detailgain"
+
+install_weights normals5detailgain normals_05views
