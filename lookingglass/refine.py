@@ -113,7 +113,8 @@ class RefineConfig:
                               range=(0, 500))
     max_step_px: float = setting(2.0, "Most a constraint moves its vertex in one iteration, in pixels.",
                                  range=(0.01, None))
-    band_px: float = setting(12.0, "Rim vertices farther than this from their mask's boundary are not pulled to it.",
+    band_px: float = setting(24.0, "Rim vertices farther than this from their mask's boundary are not pulled to it "
+                             "(12 until session 52: a crescent 12-20 px deep stayed uncovered).",
                              range=(0, None))
     silhouette_weight: float = setting(20.0, "Weight of the rim and outside constraints at masks of silhouette_width "
                                             "pixels or wider.", range=(0, None))
