@@ -115,7 +115,8 @@ def normal_loss(n1: Tensor, n2: Tensor, t: dict, kind: str = "l2", hull: tuple[T
     """L_N: the per-pixel loss (`pixel_loss`; the paper's squared L2) of N1 over the mask plus N2
     over pixels with a valid GT N2. With `hull` (the hull's N1, N2 the net was fed) and `hinge` > 0,
     each pixel also adds hinge * max(0, its loss - the hull's): a pixel the net makes worse than
-    its input weighs 1 + hinge times."""
+    its input weighs 1 + hinge times (where the hull has no second hit its N2 is zero, a large loss,
+    so the hinge leaves those pixels alone)."""
     hull1, hull2 = hull if hull is not None else (None, None)
     total = 0.0
     for n, h, target, valid in ((n1, hull1, t["n1"], t["mask"]), (n2, hull2, t["n2"], t["n2_valid"])):
@@ -185,9 +186,9 @@ def train_normals(dataset, run_dir: str | os.PathLike, config: TrainConfig, devi
                                   config.gain_quantile), {
                 "loss_normals": float(normal_loss(n1, n2, t, config.loss))}
         n1, n2 = model(inputs, cost_volume)
-        with torch.no_grad():
-            loss_hull = float(normal_loss(inputs[:, HULL_N1_CHANNELS], inputs[:, HULL_N2_CHANNELS], t, config.loss))
         hull = (inputs[:, HULL_N1_CHANNELS], inputs[:, HULL_N2_CHANNELS])
+        with torch.no_grad():
+            loss_hull = float(normal_loss(*hull, t, config.loss))
         return normal_loss(n1, n2, t, config.loss, hull, config.hull_hinge), {"loss_hull": loss_hull}
 
     def make_net() -> NormalNet:
