@@ -140,15 +140,15 @@ def test_genus_counts_handles_over_bodies():
 PITCH = 0.02
 
 
-def carved_box(carve) -> trimesh.Trimesh:
-    """The box minus the solid where carve(x, y, z) < 0 (a signed distance, negative inside the
-    cut), meshed by marching cubes at 0.01 from the exact distance."""
+def carved_box(carve, half_height: float = 0.3) -> trimesh.Trimesh:
+    """The box (1 x 1 x 2 half_height) minus the solid where carve(x, y, z) < 0 (a signed distance,
+    negative inside the cut), meshed by marching cubes at 0.01 from the exact distance."""
     from skimage.measure import marching_cubes
 
     step = 0.01
     axis = np.arange(-0.6, 0.6, step) + 0.0037  # no node exactly on a face: no degenerate triangles
     x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
-    q = np.abs(np.stack([x, y, z])) - np.array([0.5, 0.5, 0.3])[:, None, None, None]
+    q = np.abs(np.stack([x, y, z])) - np.array([0.5, 0.5, half_height])[:, None, None, None]
     box = np.linalg.norm(np.maximum(q, 0), axis=0) + np.minimum(q.max(axis=0), 0)
     vertices, faces, _, _ = marching_cubes(np.maximum(box, -carve(x, y, z)), 0.0, spacing=(step,) * 3)
     mesh = trimesh.Trimesh(vertices + axis[0], faces)
@@ -156,8 +156,8 @@ def carved_box(carve) -> trimesh.Trimesh:
     return mesh
 
 
-def drilled_box(tunnel_radius: float) -> trimesh.Trimesh:
-    return carved_box(lambda x, y, z: np.hypot(x, y) - tunnel_radius)  # minus a cylinder along z
+def drilled_box(tunnel_radius: float, half_height: float = 0.3) -> trimesh.Trimesh:
+    return carved_box(lambda x, y, z: np.hypot(x, y) - tunnel_radius, half_height)  # minus a cylinder along z
 
 
 @pytest.mark.parametrize("tunnel_radius, genus_after", [(0.02, 0), (0.15, 1)])
@@ -260,11 +260,11 @@ def surface_stage_on(monkeypatch, poisson: trimesh.Trimesh, center: np.ndarray, 
 def test_surface_stage_fills_poissons_narrow_tunnels(monkeypatch, tunnel_radius, closed):
     """surface_from_normals closes a Poisson surface's tunnels narrower than the closing ball
     (SurfaceConfig.close_radius Poisson voxels, 0.0086 each at depth 8: 0.034 wide at 2), keeps a
-    wide one, and hands a genus-0 surface through untouched (a drilled box stands in for Poisson's
-    surface; None: the box undrilled)."""
+    wide one, and hands a genus-0 surface through untouched (a drilled plate 0.06 thick, such as
+    sheets pushed through each other leave, stands in for Poisson's surface; None: undrilled)."""
     from lookingglass.points import stage
 
-    poisson = drilled_box(0.0 if tunnel_radius is None else tunnel_radius)
+    poisson = drilled_box(0.0 if tunnel_radius is None else tunnel_radius, half_height=0.03)
     poisson.metadata["poisson"] = {"depth": 8}  # Poisson's own report, kept on the closed surface too
     center, scale = np.array([1.0, 2.0, 3.0]), 2.0
     mesh = surface_stage_on(monkeypatch, poisson, center, scale)
@@ -277,11 +277,38 @@ def test_surface_stage_fills_poissons_narrow_tunnels(monkeypatch, tunnel_radius,
         assert mesh.metadata["closing"]["genus_before"] == 1
         assert mesh.metadata["closing"]["genus_after"] == stage.genus(mesh)
         assert mesh.metadata["closing"]["applied"] == closed
+        if closed:  # the plug buried the tunnel's wall, at most half the plate's thickness deep
+            assert mesh.metadata["closing"]["buried_voxels"] <= 0.03 / stage.poisson_voxel(8) + 1
         if not closed:  # the kept surface is Poisson's, moved back into the capture's frame
             np.testing.assert_allclose(mesh.vertices, poisson.vertices * scale + center)
         np.testing.assert_allclose(mesh.bounds, poisson.bounds * scale + center, atol=0.01 * scale)
     with pytest.raises(ValueError, match="close_radius"):
         stage.SurfaceConfig(close_radius=-1)
+
+
+def test_surface_stage_keeps_a_narrow_tunnel_that_leads_into_a_cavity(monkeypatch):
+    """A slit narrower than the closing ball through a box, widening into a chamber of radius 0.2
+    inside it (genus 1): closing the slit would seal the chamber and fill it, burying its wall up to
+    0.3 (35 Poisson voxels) deep, far past stage.MAX_BURIED_BALLS ball radii. The tunnel leads somewhere
+    real (test scene 25, a genus-2 shape, lost a handle and its cavity so: CD 12 -> 42), so the
+    stage keeps Poisson's surface and says how deep the closing would have buried it."""
+    from lookingglass.points import stage
+
+    def chamber_and_through_slit(x, y, z):
+        chamber = np.sqrt(x ** 2 + y ** 2 + z ** 2) - 0.2
+        slit = np.maximum(np.abs(x) - 0.0125, np.abs(y) - 0.1)  # 0.025 wide, top to bottom
+        return np.minimum(chamber, slit)
+
+    poisson = carved_box(chamber_and_through_slit)
+    assert poisson.is_watertight and stage.genus(poisson) == 1
+    mesh = surface_stage_on(monkeypatch, poisson, np.zeros(3), 1.0)
+    np.testing.assert_allclose(mesh.vertices, poisson.vertices)
+    closing = mesh.metadata["closing"]
+    assert not closing["applied"] and closing["genus_before"] == closing["genus_after"] == 1
+    # the chamber's equator lies 0.3 from the box's top and bottom faces, the closed surface there
+    depth = 0.3 / stage.poisson_voxel(8)
+    assert 0.9 * depth < closing["buried_voxels"] < 1.1 * depth
+    assert closing["buried_voxels"] > stage.MAX_BURIED_BALLS * stage.SurfaceConfig().close_radius
 
 
 def test_surface_stage_keeps_poissons_surface_when_closing_fails(monkeypatch):
