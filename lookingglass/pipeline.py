@@ -194,7 +194,7 @@ def _surface(hull: VisualHull, normals: NormalStageResult, config: PipelineConfi
     with reporter.stage("surface", "surface (feature mapping + PNet + Poisson)") as rec:
         mesh, oriented = surface_from_normals(hull, normals.maps, config.surface, point_net)
         write_points(out_dir / "points.ply", oriented.points, oriented.normals)
-        if "closing" in mesh.metadata:  # Poisson's surface had handles; the narrow ones were filled
+        if "closing" in mesh.metadata:  # Poisson's surface had handles: were the narrow ones filled, and why
             rec["tunnels_closed"] = mesh.metadata["closing"]
         rec.update(point_weights=str(path) if path is not None else None, mesh=mesh_summary(mesh),
                    points=int(len(oriented.points)), points_seen=float(oriented.seen.mean()),
