@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Rebuild lookingglass/weights/normals_10views.safetensors (+ .json): the 10-view normal net (wr+cv, cpu preset).
 #
-# Time on a 2-core CPU: ~4.6 h (~25 + ~26 min of data; training ~40 + ~85 + ~23 + ~25 + ~6 + ~4 min).
-# Provenance: lookingglass/weights/normals_10views.json (2026-11-23). Usage, from a checkout after
+# Time on a 2-core CPU: ~4.8 h (~25 + ~26 min of data; training ~40 + ~85 + ~23 + ~25 + ~6 + ~14 + ~4 min).
+# Provenance: lookingglass/weights/normals_10views.json (2026-11-28). Usage, from a checkout after
 # `bash scripts/setup.sh`:  bash recipes/normals_10views.sh  (settings: recipes/_lib.sh). Every step is skipped
 # when its weights.safetensors exists; an interrupted step resumes from its checkpoint when run again.
 #
@@ -64,13 +64,22 @@ GENERATE=generate_users step normals10detail "$DATA/users10" 10 1000 \
     --net.detail-head --detail-head-only --init "$RUNS/normals10angle3/weights.safetensors" --epochs 2 --lr 1e-3 \
     --lr-halve-epochs 1 --photo-noise 0.5 --max-scenes 1000 --loss angle --out "$RUNS/normals10detail"
 
-# 7. The gain head (ours; docs/history.md, session 41): per pixel, how many degrees closer to the truth the net's
-#    N1/N2 are than the hull's, trained alone on the frozen normals of step 6 (which stay bit-exact), 2 epochs on the
-#    first 600 scenes, two DDP processes (~2 min an epoch on a quiet machine). The refine stage's normal term reads
-#    it. (Until 2026-11-28 the shipped net had no detail head and this step started from step 5: runs/normals10gain.)
-GENERATE=generate_users step normals10detailgain "$DATA/users10" 10 600 \
-    "${DDP[@]}" train-normals --data "$DATA/users10" --views 10 --preset cpu --variant wr+cv --seed 0 \
-    --net.gain-head --net.detail-head --gain-head-only --init "$RUNS/normals10detail/weights.safetensors" \
-    --epochs 2 --lr 1e-3 --lr-halve-epochs 1 --photo-noise 0.5 --max-scenes 600 --out "$RUNS/normals10detailgain"
+# 7. The hull hinge (ours; docs/history.md, session 52): the whole net, detail head included, 2 more angle-loss
+#    epochs in which a pixel the net makes worse than the hull it was fed weighs twice (`--hull-hinge 1`), from step
+#    6, a fifth seed, two DDP processes (~7 min an epoch on a quiet machine).
+GENERATE=generate_users step normals10hinge "$DATA/users10" 10 1000 \
+    "${DDP[@]}" train-normals --data "$DATA/users10" --views 10 --preset cpu --variant wr+cv --seed 5 \
+    --net.detail-head --init "$RUNS/normals10detail/weights.safetensors" --epochs 2 --lr 5e-5 --lr-halve-epochs 1 \
+    --photo-noise 0.5 --max-scenes 1000 --loss angle --hull-hinge 1 --out "$RUNS/normals10hinge"
 
-install_weights normals10detailgain normals_10views
+# 8. The gain head (ours; docs/history.md, session 41): per pixel, how many degrees closer to the truth the net's
+#    N1/N2 are than the hull's, trained alone on the frozen normals of step 7 (which stay bit-exact), 2 epochs on the
+#    first 600 scenes, two DDP processes (~2 min an epoch on a quiet machine). The refine stage's normal term reads
+#    it. (Until 2026-11-28 the shipped net started this step from step 5 (runs/normals10gain), then from step 6
+#    (runs/normals10detailgain).)
+GENERATE=generate_users step normals10hingegain "$DATA/users10" 10 600 \
+    "${DDP[@]}" train-normals --data "$DATA/users10" --views 10 --preset cpu --variant wr+cv --seed 0 \
+    --net.gain-head --net.detail-head --gain-head-only --init "$RUNS/normals10hinge/weights.safetensors" \
+    --epochs 2 --lr 1e-3 --lr-halve-epochs 1 --photo-noise 0.5 --max-scenes 600 --out "$RUNS/normals10hingegain"
+
+install_weights normals10hingegain normals_10views

@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
 # Rebuild lookingglass/weights/points_10views.safetensors (+ .json): the 10-view point net (PNet, cpu preset),
-# a chain of 8 runs: 7 on up to 3000 procedural training scenes, the last on 1000 scenes like users' captures.
+# a chain of 9 runs: 7 on up to 3000 procedural training scenes, the last two on 1000 scenes like users' captures.
 #
 # Time on a 2-core CPU: ~10 h from scratch: the 10-view normal net (~4.5 h, recipes/normals_10views.sh; skipped
-# if already made), ~1 h more data (scenes 614-2999) and ~4.7 h of point-net runs (features and training).
-# Provenance: lookingglass/weights/points_10views.json (2026-11-25). Usage: bash recipes/points_10views.sh
+# if already made), ~1 h more data (scenes 614-2999) and ~4.9 h of point-net runs (features and training).
+# Provenance: lookingglass/weights/points_10views.json (2026-11-28). Usage: bash recipes/points_10views.sh
 # (settings: recipes/_lib.sh). Steps are skipped when their weights exist and resume when interrupted.
 #
 # Where this differs from the recorded commands (it cannot be reproduced exactly):
@@ -87,4 +87,10 @@ step points10p "$D10" 10 3000 \
 STOP_AFTER=normals10angle3 bash recipes/normals_10views.sh
 points_on_users points10users 10 "$RUNS/normals10angle3/weights.safetensors" "$RUNS/points10p/weights.safetensors"
 
-install_weights points10users points_10views
+# 9. 4 more on the same scenes with the features of the normal net shipped since 2026-11-28 (normals_10views.sh step
+#    7, the hull hinge; its gain head leaves the normals bit-exact), two DDP processes (~9 min of features, 4 epochs
+#    of 500 steps a process: ~3 min).
+STOP_AFTER=normals10hingegain bash recipes/normals_10views.sh
+points_on_users points10hinge 10 "$RUNS/normals10hingegain/weights.safetensors" "$RUNS/points10users/weights.safetensors"
+
+install_weights points10hinge points_10views
