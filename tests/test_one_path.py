@@ -88,11 +88,9 @@ def test_reconstruct_and_eval_shapes_give_the_same_mesh(scene, tmp_path):
         assert record["vh"][metric] == pytest.approx(ours_hull[metric], rel=1e-6), metric
         # screened Poisson runs on several threads and is not bit-exact from run to run (~1e-4 here)
         assert record["pnet-RE"][metric] == pytest.approx(ours[metric], rel=5e-3), metric
-        # The refine stage's iterations grow float-order differences (its terms differ by ~1e-9 between runs
-        # before it starts): two `reconstruct` runs of this scene with the 10-view weights of 2026-11-28 gave
-        # refined CD 3.642 / 3.647 and Metro 12.11 / 13.10. Metro is one point's distance, so it gets that spread.
-        tolerance = 0.1 if metric == "metro" else 2e-2
-        assert record["refined"][metric] == pytest.approx(ours_refined[metric], rel=tolerance), metric
+        # (until the silhouette fields were made with scipy's exact distance transform, OpenCV's varied by ~1e-5 px
+        # from call to call and the refine stage grew that: refined Metro 12.11 / 13.10 over two runs)
+        assert record["refined"][metric] == pytest.approx(ours_refined[metric], rel=2e-2), metric
     assert record["refined"]["kept"] == refine["kept"]
     # the kept mesh's worst view, as the refine stage reported it
     chosen = refine["silhouette_iou_after" if refine["kept"] == "refined" else "silhouette_iou_before"]
