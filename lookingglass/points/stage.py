@@ -24,6 +24,7 @@ from scipy.spatial import cKDTree
 from ..configio import check_ranges, setting
 from ..errors import ConfigError, LookingGlassError
 from ..hull import VisualHull
+from ..metrics import sample_surface
 from ..normals.predict import NormalMaps
 from ..physics.camera import Cameras
 from ..surface import close_narrow_tunnels, poisson_surface
@@ -204,20 +205,22 @@ def close_tunnels(mesh: trimesh.Trimesh, config: SurfaceConfig) -> trimesh.Trime
             # pushed through each other. 10-view test split: the helpful closings buried nothing
             # deeper than 8.6 voxels, the harmful ones 18-51 (scene 25, a genus-2 shape: CD 12 -> 42);
             # at 5 views the three closings this rejects would have cost CD +1.2 summed over the split.
-            buried = buried_depth(mesh, closed) / poisson_voxel(config.depth)
-            applied = after < handles and buried <= MAX_BURIED_BALLS * config.close_radius
+            report = dict(closed.metadata["closing"], genus_before=handles)
+            applied = False
+            if after < handles:  # only then is the closing worth keeping, and its depth worth measuring
+                buried = buried_depth(mesh, closed) / poisson_voxel(config.depth)
+                applied = buried <= MAX_BURIED_BALLS * config.close_radius
+                report["buried_voxels"] = round(float(buried), 2)
             if applied:
                 closed.metadata = {**mesh.metadata, **closed.metadata}  # Poisson's report stays
                 mesh = closed
-            mesh.metadata["closing"] = dict(closed.metadata["closing"], genus_before=handles,
-                                            genus_after=after if applied else handles, applied=applied,
-                                            buried_voxels=round(float(buried), 2))
+            mesh.metadata["closing"] = dict(report, genus_after=after if applied else handles, applied=applied)
     return mesh
 
 
 def buried_depth(surface: trimesh.Trimesh, closed: trimesh.Trimesh, samples: int = 100_000) -> float:
     """How deep the closing buried `surface`: the largest distance from (area-uniform, seeded samples
     of) `surface` to `closed`, measured on dense samples of `closed` (to about their spacing)."""
-    points = trimesh.sample.sample_surface(surface, samples, seed=0)[0]
-    targets = trimesh.sample.sample_surface(closed, 2 * samples, seed=1)[0]
+    points = sample_surface(surface, samples, seed=0)[0]
+    targets = sample_surface(closed, 2 * samples, seed=1)[0]
     return float(cKDTree(targets).query(points)[0].max())
