@@ -2,8 +2,8 @@
 # Rebuild lookingglass/weights/normals_20views.safetensors (+ .json): the 20-view normal net (issue 22), fine-tuned
 # from the shipped 10-view net (the last run of recipes/normals_10views.sh) on 600 20-view scenes like users' captures.
 #
-# Time on a 2-core CPU: the 10-view net (~4.5 h, skipped if made), ~30 min of 20-view data, ~25 min of training,
-# ~6 min for the gain head.
+# Time on a 2-core CPU: the 10-view net (~6 h, skipped if made), ~30 min of 20-view data, ~25 min of training,
+# ~6 min for the gain head, then ~9 min for the hinge fine-tune and ~6 min for its gain head (steps 3-4).
 # Provenance: lookingglass/weights/normals_20views.json. Usage: bash recipes/normals_20views.sh (settings:
 # recipes/_lib.sh). Steps are skipped when their weights exist and resume when interrupted.
 #
@@ -12,7 +12,7 @@
 set -euo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/_lib.sh"
 
-# The shipped 10-view net, the starting weights.
+# 1. The 10-view net of 2026-11-25 (step 5 of recipes/normals_10views.sh), the starting weights.
 STOP_AFTER=normals10angle3 bash recipes/normals_10views.sh
 
 # 2 angle-loss epochs (5e-5, then 2.5e-5) on 600 20-view scenes like users' captures (generate_users: CAD parts,
@@ -31,4 +31,26 @@ GENERATE=generate_users step normals20gain "$DATA/users20" 20 600 \
     --net.gain-head --gain-head-only --init "$RUNS/normals20/weights.safetensors" --epochs 2 --lr 1e-3 \
     --lr-halve-epochs 1 --photo-noise 0.5 --max-scenes 600 --out "$RUNS/normals20gain"
 
-install_weights normals20gain normals_20views
+# 3. (session 54; shipped since) The same fine-tune from the shipped 10-view net with its detail head and the hull
+#    hinge (step 7 of recipes/normals_10views.sh): 6 angle-loss epochs on the same 600 scenes in which a pixel the
+#    net makes worse than the hull it was fed weighs twice, as three runs of 2 epochs (5e-5, then 2.5e-5), each with
+#    its own shuffling seed; two DDP processes (~3-4 min an epoch on a quiet machine). At 20 views the hull is
+#    already close (N1 ~4 deg on 480x360 masks) and the net must mostly hold back.
+STOP_AFTER=normals10hinge bash recipes/normals_10views.sh
+init=$RUNS/normals10hinge
+for run in 1 2 3; do
+    name=normals20hinge$([[ $run == 1 ]] || echo "$run")
+    GENERATE=generate_users step "$name" "$DATA/users20" 20 600 \
+        "${DDP[@]}" train-normals --data "$DATA/users20" --views 20 --preset cpu --variant wr+cv --seed $((4 + run)) \
+        --net.detail-head --init "$init/weights.safetensors" --epochs 2 --lr 5e-5 --lr-halve-epochs 1 \
+        --photo-noise 0.5 --max-scenes 600 --loss angle --hull-hinge 1 --out "$RUNS/$name"
+    init=$RUNS/$name
+done
+
+# 4. Its gain head, as step 2 (the normals stay bit-exact).
+GENERATE=generate_users step normals20hinge3gain "$DATA/users20" 20 600 \
+    "${DDP[@]}" train-normals --data "$DATA/users20" --views 20 --preset cpu --variant wr+cv --seed 0 \
+    --net.gain-head --net.detail-head --gain-head-only --init "$RUNS/normals20hinge3/weights.safetensors" \
+    --epochs 2 --lr 1e-3 --lr-halve-epochs 1 --photo-noise 0.5 --max-scenes 600 --out "$RUNS/normals20hinge3gain"
+
+install_weights normals20hinge3gain normals_20views
