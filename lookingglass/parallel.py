@@ -54,8 +54,12 @@ def map_scenes(evaluation_class: Callable[..., Any], args: tuple, indices: list[
     processes (see worker_count; 0: one per core) that each build the object once, in the order the
     scenes finish. evaluation_class must be module-level (picklable)."""
     workers = 1 if device != "cpu" else worker_count(workers, len(indices))
+    evaluation = evaluation_class(*args, device=device)
     if workers == 1:
-        return map(evaluation_class(*args, device=device).scene, indices)
+        return map(evaluation.scene, indices)
+    # Built here first all the same: a bad weight file fails in this process with its message; a
+    # pool whose initializer raises would print every worker's traceback and respawn them forever.
+    del evaluation
     return map_in_processes(_scene_in_worker, indices, workers, _start_scene_worker, (evaluation_class, args))
 
 

@@ -110,3 +110,16 @@ def test_surface_points_out_of_range_is_a_clear_error(two_scene_split):
     for command in (["eval-shapes", "--data", root], ["reconstruct", root, "--out", root / "o"]):
         proc = run(*command, "--surface-points", 10, ok=False)
         assert proc.returncode == 2 and "--surface-points must be in" in proc.stderr and "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize("command", ["eval-shapes", "eval-normals"])
+def test_weights_without_their_config_fail_once_in_the_parent(two_scene_split, tmp_path, command):
+    """Weights whose JSON is missing, two workers: one clear message naming the file, exit 2, no
+    worker tracebacks (a pool whose initializer raises respawns its workers forever)."""
+    weights = tmp_path / "copied.safetensors"
+    weights.write_bytes(shipped_weights(10)[0].read_bytes())  # no copied.json beside it
+    spec = str(weights) if command == "eval-shapes" else f"wr+cv={weights}"
+    proc = run(command, "--data", two_scene_split, "--weights", spec, "--workers", 2, ok=False, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert "copied.json" in proc.stderr and "network config not found" in proc.stderr
+    assert "Traceback" not in proc.stderr
