@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
-# Rebuild lookingglass/weights/normals_20views.safetensors (+ .json): the 20-view normal net (issue 22), fine-tuned
-# from the shipped 10-view net (the last run of recipes/normals_10views.sh) on 600 20-view scenes like users' captures.
+# Rebuild lookingglass/weights/normals_20views.safetensors (+ .json): the 20-view normal net (issues 22 and 27),
+# fine-tuned from the shipped 10-view net (its hull-hinge run, step 7 of recipes/normals_10views.sh) on 600 20-view
+# scenes like users' captures (steps 3-4 below). Steps 1-2 made the previous 20-view net (from the 10-view net of
+# 2026-11-25); recipes/points_20views.sh still starts from the point net trained on its features.
 #
-# Time on a 2-core CPU: the 10-view net (~6 h, skipped if made), ~30 min of 20-view data, ~25 min of training,
-# ~6 min for the gain head, then ~9 min for the hinge fine-tune and ~6 min for its gain head (steps 3-4).
+# Time on a 2-core CPU: the 10-view net (~6 h, skipped if made), ~30 min of 20-view data, ~25 min of training and
+# ~6 min for the gain head (steps 1-2), then ~20 min for the hinge fine-tune and ~6 min for its gain head (steps 3-4).
 # Provenance: lookingglass/weights/normals_20views.json. Usage: bash recipes/normals_20views.sh (settings:
 # recipes/_lib.sh). Steps are skipped when their weights exist and resume when interrupted.
 #
@@ -15,7 +17,7 @@ source "$(dirname "${BASH_SOURCE[0]}")/_lib.sh"
 # 1. The 10-view net of 2026-11-25 (step 5 of recipes/normals_10views.sh), the starting weights.
 STOP_AFTER=normals10angle3 bash recipes/normals_10views.sh
 
-# 2 angle-loss epochs (5e-5, then 2.5e-5) on 600 20-view scenes like users' captures (generate_users: CAD parts,
+# 2. 2 angle-loss epochs (5e-5, then 2.5e-5) on 600 20-view scenes like users' captures (generate_users: CAD parts,
 # handles, thin parts and blobs beside the procedural shapes; hulls from masks 1-6x the image size), half the items
 # degraded like 8-bit photos; two DDP processes.
 GENERATE=generate_users step normals20 "$DATA/users20" 20 600 \
