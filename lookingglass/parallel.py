@@ -3,6 +3,7 @@ and the evaluations."""
 
 from __future__ import annotations
 
+import functools
 import multiprocessing
 import os
 from collections.abc import Callable, Iterable, Iterator
@@ -22,7 +23,21 @@ def _init_worker(initializer: Callable[..., None] | None, initargs: tuple) -> No
     torch.set_num_threads(1)
     warnings.simplefilter("ignore")  # callers record what matters in their results
     if initializer is not None:
-        initializer(*initargs)
+        try:
+            initializer(*initargs)
+        except Exception as error:  # noqa: BLE001 - re-raised by every task, so it reaches the caller
+            # A pool whose initializer raises prints the traceback and respawns the worker forever.
+            global _INIT_ERROR
+            _INIT_ERROR = error
+
+
+_INIT_ERROR: Exception | None = None  # what this worker's initializer raised
+
+
+def _run_task(func: Callable[[Any], Any], task: Any) -> Any:
+    if _INIT_ERROR is not None:
+        raise _INIT_ERROR
+    return func(task)
 
 
 def map_in_processes(func: Callable[[Any], Any], tasks: Iterable, workers: int,
@@ -38,7 +53,7 @@ def map_in_processes(func: Callable[[Any], Any], tasks: Iterable, workers: int,
     try:
         ctx = multiprocessing.get_context("spawn")
         with ctx.Pool(workers, initializer=_init_worker, initargs=(initializer, initargs)) as pool:
-            yield from pool.imap_unordered(func, tasks, chunksize=1)
+            yield from pool.imap_unordered(functools.partial(_run_task, func), tasks, chunksize=1)
     finally:
         for v, old in saved.items():
             if old is None:
@@ -54,12 +69,8 @@ def map_scenes(evaluation_class: Callable[..., Any], args: tuple, indices: list[
     processes (see worker_count; 0: one per core) that each build the object once, in the order the
     scenes finish. evaluation_class must be module-level (picklable)."""
     workers = 1 if device != "cpu" else worker_count(workers, len(indices))
-    evaluation = evaluation_class(*args, device=device)
     if workers == 1:
-        return map(evaluation.scene, indices)
-    # Built here first all the same: a bad weight file fails in this process with its message; a
-    # pool whose initializer raises would print every worker's traceback and respawn them forever.
-    del evaluation
+        return map(evaluation_class(*args, device=device).scene, indices)
     return map_in_processes(_scene_in_worker, indices, workers, _start_scene_worker, (evaluation_class, args))
 
 
