@@ -195,14 +195,15 @@ class IorTrainConfig:
         check_ranges(self)
 
 
-def scene_inputs(images, masks, envmap, cameras, hull: trimesh.Trimesh, cfg: IorNetConfig,
+def scene_inputs(images, masks, envmap, cameras, mesh: trimesh.Trimesh, cfg: IorNetConfig,
                  device: str = "cpu") -> tuple[Tensor, Tensor]:
     """The net's inputs (V, C, H, W) and masks (V, H, W) for one capture (linear images, the
-    capture's masks, map and cameras) and its visual hull: what `reconstruct` and the training
-    cache both compute. The hull is traced at IOR_GLASS for its normals, as the normal stage does."""
-    x = NormalInputs.from_capture(images, masks, envmap, cameras, IOR_GLASS, hull, IOR_NET_WIDTH, IOR_NET_HEIGHT,
+    capture's masks, map and cameras) and a mesh of its object: what `reconstruct` (its kept mesh)
+    and the training cache (the visual hull) both compute. The mesh is traced at IOR_GLASS for its
+    normals, as the normal stage does."""
+    x = NormalInputs.from_capture(images, masks, envmap, cameras, IOR_GLASS, mesh, IOR_NET_WIDTH, IOR_NET_HEIGHT,
                                   IOR_NET_ENVMAP_HEIGHT, device=device)
-    return ior_net_inputs(x, hull, cfg.candidates), x.mask
+    return ior_net_inputs(x, mesh, cfg.candidates), x.mask
 
 
 def cache_path(run_dir: Path, dataset, index: int) -> Path:
@@ -329,13 +330,14 @@ def load_ior_net(path: str | os.PathLike) -> IorNet:
     return net
 
 
-def learned_ior(capture, hull: trimesh.Trimesh, net: IorNet, ior_range: tuple[float, float],
+def learned_ior(capture, mesh: trimesh.Trimesh, net: IorNet, ior_range: tuple[float, float],
                 device: str = "cpu") -> LearnedIor:
-    """The IoR net's estimate for `capture` (linear photos, masks, map, cameras) and its visual hull,
-    read within `ior_range`."""
+    """The IoR net's estimate for `capture` (linear photos, masks, map, cameras) and a mesh of its
+    object (`reconstruct`'s kept mesh; the closer to the object, the better: docs/results.md), read
+    within `ior_range`."""
     start = time.perf_counter()
     with torch.no_grad():
-        views, mask = scene_inputs(capture.images, capture.masks, capture.envmap, capture.cameras, hull, net.cfg,
+        views, mask = scene_inputs(capture.images, capture.masks, capture.envmap, capture.cameras, mesh, net.cfg,
                                    device=device)
         net = net.to(device)
         logits = net(views.unsqueeze(0), mask.unsqueeze(0)).cpu()

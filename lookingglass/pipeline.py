@@ -130,19 +130,19 @@ def _assumed_ior(capture: Capture, config: PipelineConfig) -> tuple[Capture, str
     return capture.with_ior(ior), "config"
 
 
-def _estimate_ior(capture: Capture, mesh: trimesh.Trimesh, mesh_stage: str, hull: trimesh.Trimesh,
-                  config: PipelineConfig, reporter: Reporter) -> dict:
+def _estimate_ior(capture: Capture, mesh: trimesh.Trimesh, mesh_stage: str, config: PipelineConfig,
+                  reporter: Reporter) -> dict:
     """`--ior auto`: the IoR at which the kept mesh best explains the photos (lookingglass/ior.py) and
-    the IoR net's reading of the photos against the hull (lookingglass/ior_net.py, where weights
-    ship). The search's value from photos RELIABLE_MIN_WIDTH wide (there it beats the net even where
-    its curve is flat), the net's below, where the search runs low (docs/results.md, "Glass of
-    unknown IoR"); the other's value is kept in the report. A warning when the value is not to be
-    trusted."""
+    the IoR net's reading of the photos against the same mesh (lookingglass/ior_net.py, where weights
+    ship; trained on hulls, it reads a better mesh better: docs/results.md). The search's value
+    from photos RELIABLE_MIN_WIDTH wide (there it beats the net even where its curve is flat), the
+    net's below, where the search runs low (docs/results.md, "Glass of unknown IoR"); the other's
+    value is kept in the report. A warning when the value is not to be trusted."""
     with reporter.stage("ior", "IoR estimate") as rec:
         estimate = estimate_ior(mesh, capture, config.ior_range, device=config.device)
         found = {**estimate.report(), "mesh_from": mesh_stage, "method": "photometric"}
         weights, trained_views = shipped_weights(capture.num_views, "ior")  # the nearest trained view count
-        learned = None if weights is None else learned_ior(capture, hull, load_ior_net(weights), config.ior_range,
+        learned = None if weights is None else learned_ior(capture, mesh, load_ior_net(weights), config.ior_range,
                                                             config.device)
         if learned is not None:
             found["learned"] = {**learned.report(), "trained_views": trained_views}
@@ -287,7 +287,7 @@ def _run(scene_dir: Path, out_dir: Path, config: PipelineConfig, wanted: tuple[s
                 refined = _refine(capture, hull, best, weights, config, out_dir, reporter)
                 best, best_stage, rendered = refined.mesh, "refine", refined.rerendering
         write_mesh(out_dir / "mesh.ply", best)
-        estimate = (_estimate_ior(capture, best, best_stage, hull.mesh, config, reporter) if ior_source == "auto"
+        estimate = (_estimate_ior(capture, best, best_stage, config, reporter) if ior_source == "auto"
                     else None)
     messages = [str(w.message) for w in caught]
     for message in messages:
