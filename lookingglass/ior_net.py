@@ -1,22 +1,24 @@
-"""A learned IoR estimate (`reconstruct --ior auto`, issue 22): the photos against the visual hull
+"""A learned IoR estimate (`reconstruct --ior auto`, issue 22): the photos against a mesh of the object
 rendered as glass at candidate IoRs, read by a small network.
 
 The photometric search in `ior.py` renders the *final* mesh at each candidate and keeps the best
 match; where that mesh is off (CAD parts at 480x360, any 128x96 capture) a wrong shape matches best
 where it refracts least and the estimate runs low. Here the comparison is learned instead: per view,
-the normalized photo, the mask, the hull's two-bounce normals and, for each candidate IoR, the
-per-pixel difference between the photo and the hull re-traced and rendered at that IoR by the
+the normalized photo, the mask, the mesh's two-bounce normals and, for each candidate IoR, the
+per-pixel difference between the photo and the mesh re-traced and rendered at that IoR by the
 paper's rendering layer (`normals/render_layer.py`) where that layer explains the pixel. The net
 reads the cost curve those give over the candidates (plain, and weighted by a per-pixel trust it
 learns) beside features pooled over each view's mask, and gives a distribution over IoR bins: its
-mean is the estimate, its spread the uncertainty. Trained on scenes of known IoR whose hulls are
-carved as `reconstruct` carves them, it learns how a hull's errors bend the curve. The inputs are
-built from `NormalInputs`, the normal stage's own inputs, by `scene_inputs`, which both
-`reconstruct` and the training cache call.
+mean is the estimate, its spread the uncertainty. Trained on scenes of known IoR with their visual
+hulls carved as `reconstruct` carves them, it learns how a mesh's errors bend the curve; `reconstruct`
+feeds it the mesh it kept (the refined one by default), which is closer to the object than the hull,
+and the closer the mesh the better the reading. The inputs are built from `NormalInputs`, the normal
+stage's own inputs, by `scene_inputs`, which both `reconstruct` and the training cache call.
 
 Measured (docs/results.md, "Glass of unknown IoR"): on the variable-IoR test split (128x96) the
-median error is 0.044 where the search on the refined mesh gave 0.091; on 480x360 captures the
-search is better (0.009 against 0.051), so `reconstruct` keeps it there.
+median error is 0.025 reading the refined mesh (0.044 reading the hull; the search on the refined
+mesh 0.091); on 480x360 captures the search is better (0.009 against 0.028), so `reconstruct` keeps
+it there.
 """
 
 from __future__ import annotations

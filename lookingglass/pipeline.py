@@ -134,10 +134,11 @@ def _estimate_ior(capture: Capture, mesh: trimesh.Trimesh, mesh_stage: str, conf
                   reporter: Reporter) -> dict:
     """`--ior auto`: the IoR at which the kept mesh best explains the photos (lookingglass/ior.py) and
     the IoR net's reading of the photos against the same mesh (lookingglass/ior_net.py, where weights
-    ship; trained on hulls, it reads a better mesh better: docs/results.md). The search's value
-    from photos RELIABLE_MIN_WIDTH wide (there it beats the net even where its curve is flat), the
-    net's below, where the search runs low (docs/results.md, "Glass of unknown IoR"); the other's
-    value is kept in the report. A warning when the value is not to be trusted."""
+    ship; trained on hulls, it reads a better mesh better: docs/results.md). The search's value where
+    it is reliable (a deep curve, its minimum inside the range, photos RELIABLE_MIN_WIDTH wide), the
+    net's elsewhere, where the search runs low (docs/results.md, "Glass of unknown IoR"), unless the
+    range asked for reaches beyond the net's; the other's value is kept in the report. A warning
+    when the value is not to be trusted."""
     with reporter.stage("ior", "IoR estimate") as rec:
         estimate = estimate_ior(mesh, capture, config.ior_range, device=config.device)
         found = {**estimate.report(), "mesh_from": mesh_stage, "method": "photometric"}
@@ -146,7 +147,7 @@ def _estimate_ior(capture: Capture, mesh: trimesh.Trimesh, mesh_stage: str, conf
                                                             config.device)
         if learned is not None:
             found["learned"] = {**learned.report(), "trained_views": trained_views}
-            if estimate.photo_width < RELIABLE_MIN_WIDTH and not learned.beyond_trained_range:
+            if not estimate.reliable and not learned.beyond_trained_range:
                 found["photometric"] = {k: found[k] for k in ("value", "uncertainty", "reliable")}
                 found.update(value=round(learned.value, 4), uncertainty=round(learned.uncertainty, 4),
                              method="learned", reliable=learned.uncertainty <= LEARNED_RELIABLE_STD)

@@ -188,20 +188,25 @@ def test_reconstruct_ior_auto(scene, tmp_path):
     assert "ior_estimate" not in known and not any(s["name"] == "ior" for s in known["stages"])
 
 
-def test_wide_photos_keep_the_search(scene, tmp_path, monkeypatch):
-    """From photos at least RELIABLE_MIN_WIDTH wide the search's value stands (it beats the IoR net
-    there: docs/results.md), with the net's beside it; here the 64x48 capture counts as wide. A range
-    beyond the net's [1.3, 1.7] also keeps the search, the net saying it was asked beyond."""
-    monkeypatch.setattr(pipeline, "RELIABLE_MIN_WIDTH", 64)
+def test_a_reliable_search_stands(scene, tmp_path, monkeypatch):
+    """Where the search is reliable (a deep curve, its minimum inside the range, photos at least
+    RELIABLE_MIN_WIDTH wide) its value stands, with the net's beside it; elsewhere the net's is taken
+    (test_reconstruct_ior_auto). Here the 64x48 capture's search is made to pass those checks. A
+    range beyond the net's [1.3, 1.7] keeps even an unreliable search, the net saying it was asked
+    beyond."""
+    real = pipeline.estimate_ior
+    trusted = lambda *a, **k: dataclasses.replace(real(*a, **k), photo_width=480, at_bound=False,  # noqa: E731
+                                                  contrast=2 * MIN_CONTRAST)
+    monkeypatch.setattr(pipeline, "estimate_ior", trusted)
     found = pipeline.reconstruct(scene, tmp_path / "wide", dataclasses.replace(QUICK, ior="auto"))["ior_estimate"]
-    assert found["method"] == "photometric" and "photometric" not in found
+    assert found["method"] == "photometric" and found["reliable"] and "photometric" not in found
     parabola = parabola_minimum(np.array(found["cost"]), np.array(found["candidates"]))
     assert found["value"] == pytest.approx(parabola, abs=2e-3)  # the curve is stored to 5 decimals
     assert 1.3 <= found["learned"]["value"] <= 1.7
-    monkeypatch.setattr(pipeline, "RELIABLE_MIN_WIDTH", 480)
+    monkeypatch.setattr(pipeline, "estimate_ior", real)
     broad = pipeline.reconstruct(scene, tmp_path / "broad", dataclasses.replace(QUICK, ior="auto",
                                                                                  ior_range=(1.2, 1.8)))["ior_estimate"]
-    assert broad["method"] == "photometric" and broad["learned"]["beyond_trained_range"]
+    assert broad["method"] == "photometric" and not broad["reliable"] and broad["learned"]["beyond_trained_range"]
 
 
 def test_the_ior_net_reads_the_kept_mesh(scene, monkeypatch):
