@@ -12,12 +12,12 @@ from typer.testing import CliRunner
 
 import lookingglass.pipeline as pipeline
 from lookingglass import cli
+from lookingglass.capture.scene import load_capture
 from lookingglass.config import PipelineConfig, parse_ior
 from lookingglass.data.envmaps import procedural_envmap
 from lookingglass.data.rigs import paper_rig
 from lookingglass.data.synthetic import render_capture
 from lookingglass.errors import ConfigError, LookingGlassError
-from lookingglass.capture.scene import load_capture
 from lookingglass.hull import HullConfig, carve_visual_hull
 from lookingglass.ior import MIN_CONTRAST, estimate_ior, parabola_minimum
 from lookingglass.ior_net import LEARNED_RELIABLE_STD, load_ior_net
