@@ -63,8 +63,8 @@ def _subset(root, views: list[int], name: str):
 
 @pytest.mark.parametrize("count", [4, 7, 13, 25])
 def test_any_view_count_reconstructs_with_the_nearest_weights(views_30, tmp_path, count):
-    """4 and 7 views take the 5-view weights (when they ship), 13 and 25 the 10-view ones (the
-    20-view ones when they ship); the note says so; the network's normals beat the hull's (N1 median
+    """4 and 7 views take the 5-view weights, 13 the 10-view ones and 25 the 20-view ones (the nearest
+    that ship); the note says so; the network's normals beat the hull's (N1 median
     angle against the ground truth's first-hit normals). (The stages after the normals take any count:
     tests/test_cli.py runs them at 5 and 10.)"""
     root = views_30
