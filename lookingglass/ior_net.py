@@ -18,7 +18,7 @@ stage's own inputs, by `scene_inputs`, which both `reconstruct` and the training
 Measured (docs/results.md, "Glass of unknown IoR"): on the variable-IoR test split (128x96) the
 median error is 0.025 reading the refined mesh (0.044 reading the hull; the search on the refined
 mesh 0.091); on 480x360 captures the search is better where its checks pass, so `reconstruct` takes
-the net's value only where they do not (0.012 so; the search alone 0.016, the net alone 0.031).
+the net's value only where they do not (0.015 so; the search alone 0.025, the net alone 0.030).
 """
 
 from __future__ import annotations
