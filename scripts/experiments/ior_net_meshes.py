@@ -1,6 +1,8 @@
 """The IoR net (lookingglass/ior_net.py) on a variable-IoR split, fed the visual hull, the mesh
 `reconstruct` keeps (its normal stage, PNet surface and refine stage, every stage told 1.4723 as
-`--ior auto` runs them), or the ground truth: how much of its error is the mesh it reads (issue 22).
+`--ior auto` runs them; as `eval-shapes --latent-iterations 0` runs them, without the latent
+optimization), or the ground truth: how much of its error is the mesh it reads (issue 22). The search
+on such meshes: ior_auto_split.py.
 
     .venv/bin/python scripts/experiments/ior_net_meshes.py data/data10_varior 60 hull,refined,gt
 
@@ -42,7 +44,7 @@ def main(argv: list[str]) -> int:
                     mesh = hull.mesh
                 elif what == "gt":
                     mesh = dataset.meshes(i)[0]
-                else:  # reconstruct's stages, as eval-shapes runs them
+                else:  # reconstruct's stages, as eval-shapes --latent-iterations 0 runs them
                     maps = run_normal_stage(capture, hull.mesh, normal_net, None).maps
                     surface = surface_from_normals(hull, maps, SurfaceConfig(), point_net)[0]
                     mesh = refine_surface(surface, hull, capture.masks, capture.cameras, RefineConfig(),
