@@ -41,7 +41,7 @@ from .ior_net import LEARNED_RELIABLE_STD, learned_ior, load_ior_net
 from .normals.stage import NormalStageResult, run_normal_stage, second_pass, write_normal_views
 from .points.stage import surface_from_normals
 from .progress import Reporter, peak_memory_mb
-from .refine import RefineResult, refine_surface
+from .refine import RefineConfig, RefineResult, refine_surface
 from .render.compare import Rerendering
 from .report import write_report
 from .viz import silhouette_sheet
@@ -203,14 +203,45 @@ def _surface(hull: VisualHull, normals: NormalStageResult, config: PipelineConfi
     return mesh
 
 
+def refine_stage(capture: Capture, hull: VisualHull, surface: trimesh.Trimesh, weights: NormalWeights,
+                 config: RefineConfig, device: str = "cpu") -> RefineResult:
+    """The refine stage as `reconstruct` runs it, without its files: `refine_surface` against the
+    capture's masks and photos, its normal term fed by the normal net's second pass (the net run
+    again on the mesh the silhouette iterations leave)."""
+    return refine_surface(surface, hull, capture.masks, capture.cameras, config, capture=capture,
+                          normals=second_pass(capture, weights, device))
+
+
+@dataclasses.dataclass
+class StageMeshes:
+    """What the network stages make of one capture: the normal stage's result, the PNet surface and
+    the refine stage's result (None when not asked for)."""
+
+    normals: NormalStageResult
+    surface: trimesh.Trimesh
+    refined: RefineResult | None
+
+
+def stage_meshes(capture: Capture, hull: VisualHull, weights: NormalWeights, point_net,
+                 config: PipelineConfig, refine: bool = True) -> StageMeshes:
+    """The normal, surface and refine stages on `hull` as `reconstruct` runs them (the same calls,
+    without its files and report), for evaluations and experiments that score what users get.
+    point_net: a loaded point net (None: the surface without PNet). Raises what the stages raise (a
+    failed Poisson: LookingGlassError)."""
+    device = config.resolved().device
+    normals = run_normal_stage(capture, hull.mesh, weights, config.normals.latent, device)
+    surface = surface_from_normals(hull, normals.maps, config.surface, point_net)[0]
+    refined = refine_stage(capture, hull, surface, weights, config.refine, device) if refine else None
+    return StageMeshes(normals, surface, refined)
+
+
 def _refine(capture, hull: VisualHull, surface: trimesh.Trimesh, weights: NormalWeights,
             config: PipelineConfig, out_dir: Path, reporter: Reporter) -> RefineResult:
     """The refine stage: writes OUT/surface.ply (its input) and OUT/refine.png; returns its result
     (the kept mesh, its re-rendering). Its normal term runs the normal stage again, on its own mesh."""
     with reporter.stage("refine", "refine (silhouettes + smoothness + the normal net's second pass)") as rec:
         write_mesh(out_dir / "surface.ply", surface)
-        result = refine_surface(surface, hull, capture.masks, capture.cameras, config.refine, capture=capture,
-                                normals=second_pass(capture, weights, config.device))
+        result = refine_stage(capture, hull, surface, weights, config.refine, config.device)
         views = sorted(set(np.linspace(0, capture.num_views - 1, min(4, capture.num_views)).round().astype(int)))
         silhouette_sheet(out_dir / "refine.png", capture.images, capture.masks, result.casts, views,
                          result.rerendering)

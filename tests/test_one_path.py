@@ -3,8 +3,9 @@
 
 `reconstruct` carves its hull from the exported masks and cameras; `eval-shapes` reads the hull
 `generate` carved from the same masks and cameras with the same function. Everything after that
-is one path (`NormalInputs.from_capture`, `run_normal_stage`, `surface_from_normals`), so the
-hulls agree to float rounding and the meshes to what multi-threaded Poisson varies by itself.
+is one path (`NormalInputs.from_capture`, `run_normal_stage`, `surface_from_normals`, `refine_stage`;
+`stage_meshes` for the experiments), so the hulls agree to float rounding and the meshes to what
+multi-threaded Poisson varies by itself.
 """
 
 from __future__ import annotations
@@ -23,10 +24,10 @@ from lookingglass.data.torch_dataset import TransparentSceneDataset
 from lookingglass.metrics import load_mesh, shape_metrics
 from lookingglass.normals.inputs import NormalInputs
 from lookingglass.normals.latent import LatentOptConfig
-from lookingglass.pipeline import reconstruct
+from lookingglass.pipeline import reconstruct, stage_meshes
 from lookingglass.points.evaluate import evaluate_shapes
 from lookingglass.points.stage import SurfaceConfig
-from lookingglass.weights import shipped_weights
+from lookingglass.weights import load_normal_net, load_point_net, shipped_weights
 
 pytestmark = pytest.mark.skipif(shipped_weights(10)[1] != 10 or shipped_weights(10, "points")[0] is None,
                                 reason="no 10-view weights ship in this build")
@@ -84,7 +85,13 @@ def test_reconstruct_and_eval_shapes_give_the_same_mesh(scene, tmp_path):
 
     record = evaluate_shapes(dataset, shipped_weights(10)[0], ("RE",), None, SurfaceConfig(points=4096),
                              point_weights=shipped_weights(10, "points")[0], refine=config.refine)["scenes"][0]
+    # the experiments' entry to the same stages (scripts/experiments/)
+    staged = stage_meshes(dataset.capture(0), dataset.hull(0), load_normal_net(shipped_weights(10)[0]),
+                          load_point_net(shipped_weights(10, "points")[0]), config)
+    staged_surface, staged_refined = (shape_metrics(m, gt) for m in (staged.surface, staged.refined.mesh))
     for metric in ("cd", "cdn_mean", "cdn_med", "metro"):
+        assert staged_surface[metric] == pytest.approx(ours[metric], rel=5e-3), metric
+        assert staged_refined[metric] == pytest.approx(ours_refined[metric], rel=2e-2), metric
         assert record["vh"][metric] == pytest.approx(ours_hull[metric], rel=1e-6), metric
         # screened Poisson runs on several threads and is not bit-exact from run to run (~1e-4 here)
         assert record["pnet-RE"][metric] == pytest.approx(ours[metric], rel=5e-3), metric

@@ -26,10 +26,11 @@ from ..metrics import shape_metrics
 from ..hull import VisualHull
 from ..normals.latent import LatentOptConfig
 from ..normals.predict import NormalMaps
-from ..normals.stage import run_normal_stage, second_pass
+from ..normals.stage import run_normal_stage
 from ..parallel import map_scenes
+from ..pipeline import refine_stage
 from ..progress import Reporter
-from ..refine import RefineConfig, refine_surface, silhouette_iou
+from ..refine import RefineConfig, silhouette_iou
 from ..render.compare import rerender
 from ..weights import load_normal_net, load_point_net
 from .stage import SurfaceConfig, surface_from_normals
@@ -111,8 +112,7 @@ class _ShapeEvaluation:
                 mesh, record[f"pnet-{self.point_net.strategy}"] = _surface_metrics(
                     hull, gt, maps, self.surface, self.point_net, lambda m, g: self._scored(m, g, capture))
                 if mesh is not None and self.refine is not None:  # as reconstruct's refine stage, on that surface
-                    refined = refine_surface(mesh, hull, capture.masks, capture.cameras, self.refine, capture=capture,
-                                             normals=second_pass(capture, self.weights, self.device))
+                    refined = refine_stage(capture, hull, mesh, self.weights, self.refine, self.device)
                     record["refined"] = {**self._scored(refined.mesh, gt, capture), "kept": refined.report["kept"]}
         return record
 

@@ -1,6 +1,6 @@
 """`--ior auto` on a variable-IoR test split (issue 22 item 3): each scene reconstructed on `reconstruct`'s path
-with the IoR held at 1.4723 (the stored hull, `run_normal_stage`, `surface_from_normals` with the shipped point
-net, `refine_surface`), then `lookingglass.ior.estimate_ior` on the refined mesh, against the scene's true IoR.
+with the IoR held at 1.4723 (the stored hull, then `lookingglass.pipeline.stage_meshes` with the shipped
+nets), then `lookingglass.ior.estimate_ior` on the refined mesh, against the scene's true IoR.
 
 Usage (the split: `lookingglass generate --out data/data10_varior --split test --ior-range 1.3 1.7 --ior-per-shape 5`):
     .venv/bin/python scripts/experiments/ior_auto_split.py data/data10_varior FIRST LAST [--json OUT.json] [--meshes DIR]
@@ -21,10 +21,8 @@ from lookingglass.config import PipelineConfig
 from lookingglass.data.torch_dataset import TransparentSceneDataset
 from lookingglass.ior import estimate_ior
 from lookingglass.metrics import load_mesh
-from lookingglass.normals.stage import run_normal_stage
 from lookingglass.physics.constants import IOR_GLASS
-from lookingglass.points.stage import surface_from_normals
-from lookingglass.refine import refine_surface
+from lookingglass.pipeline import stage_meshes
 from lookingglass.weights import load_normal_net, load_point_net, shipped_weights
 
 
@@ -47,10 +45,7 @@ def main(argv: list[str]) -> int:
             if kept is not None and kept.exists():  # made by an earlier run: the estimate alone
                 mesh = load_mesh(kept)
             else:
-                normals = run_normal_stage(capture, hull.mesh, normal_net, config.normals.latent, "cpu")
-                surface, _ = surface_from_normals(hull, normals.maps, config.surface, point_net)
-                mesh = refine_surface(surface, hull, capture.masks, capture.cameras, config.refine, capture=capture,
-                                      normals=normals).mesh
+                mesh = stage_meshes(capture, hull, normal_net, point_net, config).refined.mesh
                 if kept is not None:
                     kept.parent.mkdir(parents=True, exist_ok=True)
                     mesh.export(kept)

@@ -20,10 +20,11 @@ import torch
 
 from lookingglass.data.torch_dataset import TransparentSceneDataset
 from lookingglass.ior_net import learned_ior, load_ior_net
-from lookingglass.normals.stage import run_normal_stage, second_pass
+from lookingglass.config import PipelineConfig
+from lookingglass.normals.latent import LatentOptConfig
+from lookingglass.normals.stage import NormalStageConfig
 from lookingglass.physics.constants import IOR_GLASS
-from lookingglass.points.stage import SurfaceConfig, surface_from_normals
-from lookingglass.refine import RefineConfig, refine_surface
+from lookingglass.pipeline import stage_meshes
 from lookingglass.weights import shipped_weights, load_normal_net, load_point_net
 
 
@@ -33,6 +34,8 @@ def main(argv: list[str]) -> int:
     net = load_ior_net(shipped_weights(views, "ior")[0])
     normal_net = load_normal_net(shipped_weights(views, "normals")[0])
     point_net = load_point_net(shipped_weights(views, "points")[0])
+    # as eval-shapes' Table 2/3: without the latent optimization
+    config = PipelineConfig(device="cpu", normals=NormalStageConfig(latent=LatentOptConfig(0, 0)))
     errors, spreads = {w: [] for w in which}, {w: [] for w in which}
     for i in range(min(count, len(dataset))):
         truth, capture, hull = dataset.capture(i).ior, dataset.capture(i, IOR_GLASS), dataset.hull(i)
@@ -45,10 +48,7 @@ def main(argv: list[str]) -> int:
                 elif what == "gt":
                     mesh = dataset.meshes(i)[0]
                 else:  # reconstruct's stages, as eval-shapes --latent-iterations 0 runs them
-                    maps = run_normal_stage(capture, hull.mesh, normal_net, None).maps
-                    surface = surface_from_normals(hull, maps, SurfaceConfig(), point_net)[0]
-                    mesh = refine_surface(surface, hull, capture.masks, capture.cameras, RefineConfig(),
-                                          capture=capture, normals=second_pass(capture, normal_net)).mesh
+                    mesh = stage_meshes(capture, hull, normal_net, point_net, config).refined.mesh
                 found = learned_ior(capture, mesh, net, (1.3, 1.7))
             errors[what].append(found.value - truth)
             spreads[what].append(found.uncertainty)

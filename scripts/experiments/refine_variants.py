@@ -18,9 +18,10 @@ import torch
 
 from lookingglass.data.torch_dataset import TransparentSceneDataset
 from lookingglass.metrics import shape_metrics
-from lookingglass.normals.stage import run_normal_stage, second_pass
+from lookingglass.normals.stage import run_normal_stage
+from lookingglass.pipeline import refine_stage
 from lookingglass.points.stage import SurfaceConfig, surface_from_normals
-from lookingglass.refine import RefineConfig, refine_surface, silhouette_iou
+from lookingglass.refine import RefineConfig, silhouette_iou
 from lookingglass.weights import load_normal_net, load_point_net, shipped_weights
 
 VARIANTS = {"weight 1": dict(silhouette_weight=1.0, silhouette_width=0),
@@ -46,8 +47,7 @@ for i in map(int, sys.argv[2].split(",")):
     print(i, "surface", round(m["cd"], 2), round(m["cdn_mean"], 2),
           round(float(silhouette_iou(mesh, capture.cameras, capture.masks).min()), 3), flush=True)
     for name, settings in VARIANTS.items():
-        result = refine_surface(mesh, hull, capture.masks, capture.cameras, RefineConfig(**settings), capture=capture,
-                                normals=second_pass(capture, normal_net))
+        result = refine_stage(capture, hull, mesh, normal_net, RefineConfig(**settings))
         m = shape_metrics(result.refined, truth)
         term = result.report.get("normal_term", {})
         print(i, name, "kept" if result.report["kept"] == "refined" else "rejected", round(m["cd"], 2),
