@@ -4,6 +4,7 @@ with its help and range, `check_ranges`: the check a config's __post_init__ runs
 from __future__ import annotations
 
 import dataclasses
+import math
 import typing
 from typing import Any
 
@@ -73,9 +74,20 @@ def out_of_range(name: str, value: Any, bounds: tuple | None) -> str | None:
     return f"{name} must be in [{low}, {high}], got {value}"
 
 
+def not_finite(name: str, value: Any) -> str | None:
+    """'NAME must be a finite number, got VALUE' when `value` (or an element of a tuple or list) is a
+    float that is NaN or infinite, else None: an open range's bound lets inf through, and NaN passes
+    every comparison."""
+    values = value if isinstance(value, (tuple, list)) else (value,)
+    bad = next((v for v in values if isinstance(v, float) and not math.isfinite(v)), None)
+    return None if bad is None else f"{name} must be a finite number, got {bad}"
+
+
 def check_ranges(config: Any) -> None:
-    """Raise ConfigError for the first field of `config` outside its `setting(range=...)`."""
+    """Raise ConfigError for the first float field of `config` that is not finite, or the first field
+    outside its `setting(range=...)`."""
     for f in dataclasses.fields(config):
-        problem = out_of_range(f.name, getattr(config, f.name), f.metadata.get("range"))
+        value = getattr(config, f.name)
+        problem = not_finite(f.name, value) or out_of_range(f.name, value, f.metadata.get("range"))
         if problem:
             raise ConfigError(problem)

@@ -74,18 +74,27 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             tmp_path.unlink()
 
 
+def resolved_path(path: str | os.PathLike) -> Path:
+    """`path` made absolute with its symbolic links followed; a LookingGlassError naming it for a
+    link loop (Path.resolve raises RuntimeError or OSError there)."""
+    try:
+        return Path(path).resolve()
+    except (RuntimeError, OSError) as exc:
+        raise LookingGlassError(f"cannot follow the path ({exc}): a loop of symbolic links?", path) from None
+
+
 def check_output_dir(out: str | os.PathLike, force: bool, inputs: Iterable[str | os.PathLike] = ()) -> None:
     """Refuse, before any work starts, an output folder that a run could not write or must not
     replace (LookingGlassError naming it): a path that exists and is not a folder; a non-empty
-    folder without `force`; a folder that is, or holds, one of `inputs` (replacing it would delete
-    the input); a folder (or, when it does not exist yet, its nearest existing parent) that is not a
+    folder without `force`; a folder that is, or holds, one of `inputs` (files or folders: replacing
+    it would delete the input); a folder (or, when it does not exist yet, its nearest existing parent) that is not a
     folder or that this process may not write. Missing parents are fine: `staged_dir` makes them."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise LookingGlassError("output path exists and is not a folder", out)
-    resolved = out.resolve()
+    resolved = resolved_path(out)
     for p in inputs:
-        q = Path(p).resolve()
+        q = resolved_path(p)
         if q == resolved or resolved in q.parents:
             raise LookingGlassError(f"output folder would replace the input {p}", out)
     if out.is_dir():
@@ -150,7 +159,11 @@ def staged_dir(out: str | os.PathLike, force: bool = False, doing: str = "",
                               f"no partial result was left ({state})") from None
         if isinstance(exc, OSError) and not isinstance(exc, LookingGlassError) and exc.errno in _WRITE_ERRNOS:
             where = exc.filename or out
-            raise LookingGlassError(f"cannot write ({exc.strerror}); no partial result was left", where) from None
+            # a file outside the output being written was being read (an input the run may not open)
+            writing = not exc.filename or Path(os.path.abspath(exc.filename)).is_relative_to(tmp.absolute()) \
+                or Path(os.path.abspath(exc.filename)) == Path(os.path.abspath(out))
+            raise LookingGlassError(f"cannot {'write' if writing else 'read'} ({exc.strerror}); no partial result was "
+                                    "left", where) from None
         raise
     if backup is not None:  # the old folder, replaced: out is finished whatever happens here
         shutil.rmtree(backup, ignore_errors=True)

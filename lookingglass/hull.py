@@ -73,14 +73,14 @@ class HullConfig:
 
     resolution: int = setting(128, "Voxels along the longest side of the hull box.", range=(16, 1024))
     field: str = setting("distance", "distance (sub-voxel surface) or binary (the paper release's occupancy).")
-    padding: float = setting(0.02, "Margin around the tight box, a fraction of its longest side.", range=(0, None))
+    padding: float = setting(0.02, "Margin around the tight box, a fraction of its longest side.", range=(0, 1))
     coarse_resolution: int = setting(64, "Voxels along the longest side in the box search's last round.",
                                      range=(8, 1024))
     box_iterations: int = setting(8, "Most coarse carve -> shrink rounds of the box search.", range=(0, None))
     subdivision_iterations: int = setting(5, "LS3 Loop subdivision rounds (0: the raw marching-cubes surface).",
                                           range=(0, None))
     subdivision_threshold: float = setting(0.01, "Edges longer than this fraction of the box diagonal are split.",
-                                           range=(0, None))
+                                           range=(0, 1))
     smoothing_iterations: int = setting(0, "Taubin smoothing steps before subdivision.", range=(0, None))
     min_view_coverage: float = setting(0.5, "Least fraction of every mask the hull must cover (else an error).",
                                        range=(0, 1))

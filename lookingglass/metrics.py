@@ -255,7 +255,8 @@ def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
     if not path.is_file():
         raise LookingGlassError("not a file (expected a mesh such as .ply, .obj, .off, .stl)", path)
     try:
-        mesh = trimesh.load(path, force="mesh")
+        # unprocessed first: trimesh's processing drops the faces of a NaN vertex without a word
+        mesh = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for bad files
         raise LookingGlassError(f"cannot read mesh ({type(exc).__name__}: {exc})", path) from exc
     if not isinstance(mesh, trimesh.Trimesh):
@@ -265,6 +266,7 @@ def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
                                 path)
     if not np.isfinite(np.asarray(mesh.vertices)).all():
         raise LookingGlassError("mesh has non-finite vertex coordinates", path)
+    mesh.process()  # what trimesh.load does by default: merge duplicate vertices
     if not mesh.area > 0.0:
         raise LookingGlassError("mesh has zero surface area (all faces degenerate)", path)
     return mesh

@@ -31,10 +31,10 @@ import torch
 import trimesh
 
 from . import __version__
-from .capture.scene import SCENE_FILE, Capture, load_capture
+from .capture.scene import SCENE_FILE, Capture, SceneSpec, load_capture
 from .config import STAGES, PipelineConfig, config_to_dict, parse_ior
 from .errors import LookingGlassError, LookingGlassWarning
-from .fileio import staged_dir, write_atomic, write_json
+from .fileio import resolved_path, staged_dir, write_atomic, write_json
 from .hull import VisualHull, carve_visual_hull
 from .ior import MIN_CONTRAST, RELIABLE_MIN_WIDTH, assumed_ior, estimate_ior
 from .ior_net import LEARNED_RELIABLE_STD, learned_ior, load_ior_net
@@ -250,6 +250,17 @@ def _refine(capture, hull: VisualHull, surface: trimesh.Trimesh, weights: Normal
     return result
 
 
+def _scene_files(scene_dir: Path) -> list[Path]:
+    """The files scene.json names (images, masks, environment map), so that an output folder that
+    holds one (`--out scene/images --force`) is refused before it replaces them; none when scene.json
+    does not parse (loading the capture then says why)."""
+    try:
+        spec, _ = SceneSpec.from_json(scene_dir / SCENE_FILE)
+    except LookingGlassError:
+        return []
+    return [scene_dir / spec.envmap, *(scene_dir / f for v in spec.views for f in (v.image, v.mask))]
+
+
 def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = None, force: bool = False,
                 reporter: Reporter | None = None, ground_truth: trimesh.Trimesh | None = None) -> dict:
     """Reconstruct the object in the scene folder `scene_dir` into the folder `out_dir`; returns the
@@ -273,10 +284,11 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
     # saved resolved in report.json's config
     config = config.resolved()
     device = config.device
-    if scene_dir.resolve() == out_dir.resolve():
+    if resolved_path(scene_dir) == resolved_path(out_dir):
         raise LookingGlassError("output folder must differ from the scene folder", out_dir)
     given = _given_weights(config)
-    inputs = [scene_dir, *(p for p in (config.normals.weights, config.surface.point_weights) if p)]
+    inputs = [scene_dir, *_scene_files(scene_dir), *(p for p in (config.normals.weights, config.surface.point_weights)
+                                                     if p)]
     with staged_dir(out_dir, force, doing=f"reconstruct of {scene_dir}", inputs=inputs) as work:
         report, capture, rendered = _run(scene_dir, work, config, wanted, given, reporter)
         report["total_seconds"] = round(time.perf_counter() - start, 3)

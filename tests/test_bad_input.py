@@ -203,6 +203,35 @@ def out_probe(kind: str) -> Callable:
     return setup
 
 
+def out_in_scene_probe(root, work):
+    """--out a folder of the scene that holds its photos, with --force: it would delete them."""
+    scene = scene_copy(root, work)
+    return (["reconstruct", scene, "--out", scene / "images", "--force", "--quiet"], "images",
+            ("replace the input", "00.exr"))
+
+
+def scene_loop_probe(root, work):
+    (work / "loop").symlink_to(work / "loop")
+    return reconstruct(work / "loop", work), "loop", ("symbolic links",)
+
+
+def nan_vertex_probe(root, work):
+    """A mesh with one NaN vertex: trimesh's loading would drop its faces without a word."""
+    mesh = trimesh.load(root / "gt.ply", process=False)
+    vertices = np.array(mesh.vertices)
+    vertices[7] = np.nan
+    trimesh.Trimesh(vertices, mesh.faces, process=False).export(work / "nan.ply")
+    return ["evaluate", root / "gt.ply", work / "nan.ply"], "nan.ply", ("non-finite",)
+
+
+def view_probe(report):
+    def setup(root, work):
+        (work / "done").mkdir()
+        (work / "done" / "report.json").write_text(json.dumps(report))
+        return ["view", work / "done"], "report.json", ("not a `lookingglass reconstruct` report",)
+    return setup
+
+
 def render_probe(mesh: str, *more, names: str | None = None, fragments=()) -> Callable:
     def setup(root, work):
         return (["render", root / mesh, "--envmap", root / "env.hdr", "--rig", 5, "--size", 32, 24, *more,
@@ -292,10 +321,21 @@ PROBES = [
     Probe("out_under_a_file", out_probe("under_file")),
     Probe("out_not_empty", out_probe("busy")),
     Probe("out_holds_the_scene", out_probe("holds_input")),
+    Probe("out_in_the_scene_holds_its_photos", out_in_scene_probe),
+    Probe("scene_symlink_loop", scene_loop_probe),
+    # settings: a NaN passes every comparison, an open range lets inf through
+    Probe("setting_inf", flag_probe("--refine.damping", "inf", names="--refine.damping", fragments=["finite"])),
+    Probe("setting_nan", flag_probe("--refine.normal-trust-gain", "nan", names="--refine.normal-trust-gain",
+                                    fragments=["finite"])),
+    Probe("hull_padding_huge", flag_probe("--hull.padding", 1e6, names="--hull.padding", fragments=["[0, 1]"])),
+    # view
+    Probe("view_report_without_scene", view_probe({"completed": True})),
+    Probe("view_report_a_list", view_probe([1])),
     # evaluate
     Probe("evaluate_samples_0", evaluate_probe("gt.ply", "gt.ply", "--samples", 0, names="--samples")),
     Probe("evaluate_missing", evaluate_probe("gt.ply", "absent.ply", names="absent.ply")),
     Probe("evaluate_not_a_mesh", evaluate_probe("notamesh.ply", "gt.ply", names="notamesh.ply")),
+    Probe("evaluate_nan_vertex", nan_vertex_probe),
     # render
     Probe("render_size_0", render_probe("gt.ply", "--size", 0, 0, names="--size")),
     Probe("render_size_negative", render_probe("gt.ply", "--size", -5, 4, names="--size")),

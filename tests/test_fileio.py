@@ -116,3 +116,27 @@ def test_check_output_dir_refuses_before_any_work(tmp_path):
         locked.mkdir(mode=0o555)
         with pytest.raises(LookingGlassError, match="not writable"):
             check_output_dir(locked / "o", False)
+
+
+def test_staged_dir_says_read_or_write_by_where_the_error_was(tmp_path):
+    """A permission error on an input (a photo the user may not open) is "cannot read"; one inside
+    the folder being written is "cannot write". (Made here: as root no file is unreadable.)"""
+    import errno
+
+    with pytest.raises(LookingGlassError, match=r"in\.exr: cannot read \(Permission denied\)"):
+        with staged_dir(tmp_path / "out"):
+            raise PermissionError(errno.EACCES, "Permission denied", str(tmp_path / "in.exr"))
+    with pytest.raises(LookingGlassError, match=r"cannot write \(No space left on device\)"):
+        with staged_dir(tmp_path / "out") as work:
+            raise OSError(errno.ENOSPC, "No space left on device", str(work / "mesh.ply"))
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_image_without_read_permission_names_it(tmp_path, monkeypatch):
+    from lookingglass.capture import images
+
+    path = tmp_path / "a.png"
+    images.write_mask(path, __import__("numpy").ones((4, 4), bool))
+    monkeypatch.setattr(images.os, "access", lambda p, mode: False)  # as root every file is readable
+    with pytest.raises(LookingGlassError, match=r"a\.png: cannot read \(permission denied\)"):
+        images.read_mask(path)

@@ -55,10 +55,15 @@ def linear_to_srgb(x: np.ndarray) -> np.ndarray:
 
 
 def _check_exists(path: Path) -> None:
-    if not path.exists():
-        raise LookingGlassError("file not found", path)
+    try:
+        if not path.exists():
+            raise LookingGlassError("file not found", path)
+    except PermissionError:  # a folder on the path that may not be searched
+        raise LookingGlassError("cannot read (permission denied on a folder of its path)", path) from None
     if not path.is_file():
         raise LookingGlassError("not a file", path)
+    if not os.access(path, os.R_OK):
+        raise LookingGlassError("cannot read (permission denied)", path)
 
 
 _NATIVE_OUTPUT_LOCK = threading.Lock()

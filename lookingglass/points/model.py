@@ -49,7 +49,7 @@ import torch.nn.functional as F
 from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
-from ..configio import setting
+from ..configio import check_ranges, setting
 from ..errors import ConfigError
 from .features import FEATURE_COLUMNS, NUM_FEATURES
 
@@ -102,7 +102,7 @@ class PointNetConfig:
     sa_mlps: tuple[tuple[int, ...], ...] = ((64, 64), (128, 128), (256, 256), (512, 512))
     fp_mlps: tuple[tuple[int, ...], ...] = ((512, 256), (256, 128), (128, 64), (64,))
     gn_group_size: int = setting(16, "Channels per GroupNorm group.")
-    offset_scale: float = setting(0.25, "offset = offset_scale x tanh(.), in the normalized frame.")
+    offset_scale: float = setting(0.25, "offset = offset_scale x tanh(.), in the normalized frame.", range=(0, None))
     average_pooling: bool = setting(True, "Average ball features over the ball's members (else: max pooling).")
     normal_difference: bool = setting(True, "Neighbours' grouping features get their normal minus the centre's.")
     normal_skip: bool = setting(True, "Skip links get the level's normals and their difference to the coarser level's.")
@@ -110,6 +110,7 @@ class PointNetConfig:
     residual: bool = setting(False, "Start at the hull: zero offset and the mapped normal (ours).")
 
     def __post_init__(self) -> None:
+        check_ranges(self)
         self.centres = tuple(int(c) for c in self.centres)
         self.radii = tuple(float(r) for r in self.radii)
         self.neighbours = tuple(int(k) for k in self.neighbours)

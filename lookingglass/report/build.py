@@ -77,6 +77,9 @@ def write_report(out_dir: str | Path, *, capture=None, report: dict | None = Non
         if not path.exists():
             raise LookingGlassError("no report.json: not a `lookingglass reconstruct` output folder", out_dir)
         report = read_json(path, "reconstruct report")
+        if not (isinstance(report, dict) and isinstance(report.get("scene"), str)):
+            raise LookingGlassError("not a `lookingglass reconstruct` report (no \"scene\" entry naming the scene "
+                                    "folder)", path)
     if capture is None:
         capture = load_capture(report["scene"])
     mesh = load_mesh(out_dir / "mesh.ply")
