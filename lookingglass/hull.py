@@ -499,7 +499,15 @@ class _StepClock:
         return self.timings
 
 
-def _checked_inputs(masks, cameras: Cameras, config: HullConfig) -> np.ndarray:
+def _views(indices, names=None) -> str:
+    """"view(s) [1, 3]", or with the views' mask files "view(s) 1 (masks/01.png), 3 (masks/03.png)"."""
+    indices = [int(v) for v in indices]
+    if names is None:
+        return f"view(s) {indices}"
+    return "view(s) " + ", ".join(f"{v} ({names[v]})" for v in indices)
+
+
+def _checked_inputs(masks, cameras: Cameras, config: HullConfig, names=None) -> np.ndarray:
     """The masks as (V, H, W) bool after checking them against the cameras.
 
     Raises LookingGlassError for masks that do not fit the cameras or an empty mask (the config
@@ -516,11 +524,11 @@ def _checked_inputs(masks, cameras: Cameras, config: HullConfig) -> np.ndarray:
         raise LookingGlassError("a visual hull needs at least 2 views")
     areas = masks.sum(axis=(1, 2))
     if np.any(areas == 0):
-        raise LookingGlassError(f"the mask of view(s) {np.flatnonzero(areas == 0).tolist()} is empty")
+        raise LookingGlassError(f"the mask of {_views(np.flatnonzero(areas == 0), names)} is empty")
     border = masks[:, 0, :].any(1) | masks[:, -1, :].any(1) | masks[:, :, 0].any(1) | masks[:, :, -1].any(1)
     if np.any(border):
         warnings.warn(
-            f"the mask of view(s) {np.flatnonzero(border).tolist()} touches the image border: the "
+            f"the mask of {_views(np.flatnonzero(border), names)} touches the image border: the "
             "object is cut off there, and the hull is clipped to the image (outside counts as "
             "background)", stacklevel=3)
     return masks
@@ -555,7 +563,7 @@ def _carve_fine(carver: _Carver, lo: np.ndarray, hi: np.ndarray, config: HullCon
 
 
 def _checked_coverage(vol: torch.Tensor, origin: np.ndarray, h: float, masks: np.ndarray,
-                      cameras: Cameras, config: HullConfig) -> np.ndarray:
+                      cameras: Cameras, config: HullConfig, names=None) -> np.ndarray:
     """Each view's mask coverage by the carved hull ((V,) float64, see `_view_coverage`).
 
     Raises LookingGlassError when the hull is empty or covers less than `min_view_coverage` of a
@@ -570,14 +578,14 @@ def _checked_coverage(vol: torch.Tensor, origin: np.ndarray, h: float, masks: np
     if len(bad):
         raise LookingGlassError(
             f"the masks do not agree with the cameras: the visual hull covers only "
-            f"{', '.join(f'{100 * coverage[v]:.0f}%' for v in bad)} of the mask of view(s) "
-            f"{bad.tolist()} (a wrong camera pose, masks in another order than the cameras, or "
+            f"{', '.join(f'{100 * coverage[v]:.0f}%' for v in bad)} of the mask of "
+            f"{_views(bad, names)} (a wrong camera pose, masks in another order than the cameras, or "
             f"a mask of another object)")
     low = np.flatnonzero(coverage < config.warn_view_coverage)
     if len(low):
         warnings.warn(
             f"the visual hull covers only {', '.join(f'{100 * coverage[v]:.0f}%' for v in low)} "
-            f"of the mask of view(s) {low.tolist()}: some masks or camera poses are off",
+            f"of the mask of {_views(low, names)}: some masks or camera poses are off",
             stacklevel=3)
     return coverage
 
@@ -628,7 +636,7 @@ def _smoothed(verts: np.ndarray, faces: np.ndarray, config: HullConfig) -> tuple
 # ---------------------------------------------------------------------------------------------
 
 def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig(),
-                      progress: ProgressFn | None = None) -> VisualHull:
+                      progress: ProgressFn | None = None, view_names=None) -> VisualHull:
     """Carve the visual hull of V silhouettes.
 
     masks: (V, H, W) bool, numpy or torch (object = True); H, W = the cameras' image size.
@@ -636,6 +644,7 @@ def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig()
     config: see `HullConfig`.
     progress: optional callback progress(sub_step, fraction_done) for a progress bar; called after
         each sub-step with its name (the keys of `VisualHull.timings`).
+    view_names: optional (V,) names of the views' mask files, for the messages about a view.
     Returns a `VisualHull` in the capture frame. Raises `LookingGlassError` when the inputs do not
     match, a mask is empty, the hull is empty or unbounded, or the hull explains less than
     `config.min_view_coverage` of some view's mask (masks and cameras disagree). Warns
@@ -644,7 +653,7 @@ def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig()
     pieces of the hull disconnected from the largest one are dropped.
     """
     step = _StepClock(progress)
-    masks = _checked_inputs(masks, cameras, config)
+    masks = _checked_inputs(masks, cameras, config, view_names)
 
     with torch_threads(config.num_threads), torch.inference_mode():
         carver = _Carver(silhouette_fields(masks), cameras, config.device, config.chunk_voxels)
@@ -657,7 +666,7 @@ def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig()
         vol, lo, hi, origin, h, shape = _carve_fine(carver, lo - pad, hi + pad, config)
         step("carve", 0.6)
 
-        coverage = _checked_coverage(vol, origin, h, masks, cameras, config)
+        coverage = _checked_coverage(vol, origin, h, masks, cameras, config, view_names)
         volume = vol.cpu().numpy()
     step("coverage", 0.65)
 

@@ -313,7 +313,13 @@ def _run(scene_dir: Path, out_dir: Path, config: PipelineConfig, wanted: tuple[s
                 else (None, 0, 0)
 
         with reporter.stage("visual_hull", "visual hull") as rec:
-            hull = carve_visual_hull(capture.masks, capture.cameras, config.hull)
+            try:
+                hull = carve_visual_hull(capture.masks, capture.cameras, config.hull,
+                                         view_names=[v.mask for v in capture.spec.views])
+            except LookingGlassError as exc:  # about the masks and cameras together: scene.json lists both
+                if exc.path is not None:
+                    raise
+                raise LookingGlassError(str(exc), capture.root / SCENE_FILE) from None
             write_mesh(out_dir / "visual_hull.ply", hull.mesh)
             rec.update(mesh=mesh_summary(hull.mesh), voxel_size=float(hull.voxel_size),
                        timings={k: round(float(v), 3) for k, v in hull.timings.items()})

@@ -26,7 +26,7 @@ import pytest
 import trimesh
 
 from lookingglass import cli
-from lookingglass.capture.images import read_image, write_image, write_mask
+from lookingglass.capture.images import read_image, read_mask, write_image, write_mask
 from lookingglass.data.envmaps import procedural_envmap
 from lookingglass.data.rigs import paper_rig
 from lookingglass.data.synthetic import render_capture
@@ -135,6 +135,14 @@ def broken_file(rel: str, fn, *fragments, full_run: bool = False) -> Callable:
         fn(scene / rel)
         more = () if full_run else ("--stop-after", "visual_hull")
         return reconstruct(scene, work, *more), rel, fragments
+    return setup
+
+
+def against_the_cameras(rel: str, fn, *fragments) -> Callable:
+    """A mask that disagrees with the cameras: the message names scene.json (which pairs them) and the mask."""
+    def setup(root, work):
+        args, _, fragments_ = broken_file(rel, fn, *fragments)(root, work)
+        return args, "scene.json", fragments_
     return setup
 
 
@@ -301,6 +309,8 @@ PROBES = [
     Probe("images_black", probe_black),
     # masks
     Probe("mask_empty", broken_file("masks/02.png", lambda p: write_mask(p, np.zeros((H, W), bool)), "empty")),
+    Probe("mask_of_another_object", against_the_cameras("masks/01.png", lambda p: write_mask(p, ~read_mask(p)),
+                                                "do not agree", "1 (masks/01.png)")),
     Probe("mask_size", broken_file("masks/02.png", lambda p: write_mask(p, np.ones((H, W - 4), bool)), "60x48")),
     # environment map
     Probe("envmap_black", broken_file("envmap.hdr", lambda p: write_image(p, np.zeros((16, 32, 3), np.float32)),
