@@ -341,6 +341,7 @@ PROBES = [
     # view
     Probe("view_report_without_scene", view_probe({"completed": True})),
     Probe("view_report_a_list", view_probe([1])),
+    Probe("view_a_text_file", lambda root, work: (["view", root / "gt.ply"], "gt.ply", ("not a report",))),
     # evaluate
     Probe("evaluate_samples_0", evaluate_probe("gt.ply", "gt.ply", "--samples", 0, names="--samples")),
     Probe("evaluate_missing", evaluate_probe("gt.ply", "absent.ply", names="absent.ply")),
