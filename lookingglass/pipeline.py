@@ -209,7 +209,7 @@ def refine_stage(capture: Capture, hull: VisualHull, surface: trimesh.Trimesh, w
     capture's masks and photos, its normal term fed by the normal net's second pass (the net run
     again on the mesh the silhouette iterations leave)."""
     return refine_surface(surface, hull, capture.masks, capture.cameras, config, capture=capture,
-                          normals=second_pass(capture, weights, device))
+                          normals=second_pass(capture, weights, device), view_names=capture.mask_names)
 
 
 @dataclasses.dataclass
@@ -314,8 +314,7 @@ def _run(scene_dir: Path, out_dir: Path, config: PipelineConfig, wanted: tuple[s
 
         with reporter.stage("visual_hull", "visual hull") as rec:
             try:
-                hull = carve_visual_hull(capture.masks, capture.cameras, config.hull,
-                                         view_names=[v.mask for v in capture.spec.views])
+                hull = carve_visual_hull(capture.masks, capture.cameras, config.hull, view_names=capture.mask_names)
             except LookingGlassError as exc:  # about the masks and cameras together: scene.json lists both
                 if exc.path is not None:
                     raise

@@ -727,7 +727,7 @@ def carve_by_hull(refined: trimesh.Trimesh, hull_mesh: trimesh.Trimesh, cameras:
 
 def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cameras: Cameras,
                    config: RefineConfig | None = None, view_coverage: np.ndarray | None = None,
-                   capture=None, normals=None) -> RefineResult:
+                   capture=None, normals=None, view_names=None) -> RefineResult:
     """Refine `mesh` (capture frame, closed) against `masks` (V, H, W) bool seen by `cameras`
     (capture frame, H x W). `hull` gives the normalized frame; `view_coverage` (V,) the share of
     each mask the hull covers (default: `hull.view_coverage` when it has one per view, else every
@@ -737,7 +737,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     (called once, on the mesh after the silhouette iterations: the second pass; it returns None
     for a net without a gain head), or a `NormalStageResult` made elsewhere; the term is skipped
     without, or when the net has no gain head. Returns the kept mesh (the better of the refined one
-    and the input) and the report. Warns (warnings.warn) for every down-weighted view."""
+    and the input) and the report. Warns (warnings.warn) for every down-weighted view, named by
+    `view_names` (V,) when given (its mask file)."""
     config = config or RefineConfig()
     start_time = time.perf_counter()
     masks = np.asarray(masks, bool)
@@ -748,7 +749,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     low = np.flatnonzero(weights < 1)
     if len(low):
         warnings.warn("refine: down-weighted view(s) " + ", ".join(
-            f"{v} (weight {weights[v]:.2f}: the hull covers {100 * view_coverage[v]:.0f}% of its mask)" for v in low)
+            f"{v} ({f'{view_names[v]}, ' if view_names is not None else ''}weight {weights[v]:.2f}: the hull covers "
+            f"{100 * view_coverage[v]:.0f}% of its mask)" for v in low)
             + ": their masks disagree with the other views", stacklevel=2)
 
     timings = {}

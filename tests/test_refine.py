@@ -159,9 +159,10 @@ def test_a_view_with_a_stray_blob_is_down_weighted_and_named(scene):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         hull_bad = carve_visual_hull(bad, cameras, HullConfig(resolution=64, num_threads=1))
-        result = refine_surface(lumpy_shrunken(gt), hull_bad, bad, cameras, CONFIG)
+        result = refine_surface(lumpy_shrunken(gt), hull_bad, bad, cameras, CONFIG,
+                                view_names=[f"masks/{v:02d}.png" for v in range(len(bad))])
     named = [str(w.message) for w in caught if str(w.message).startswith("refine:")]
-    assert len(named) == 1 and "view(s) 4 " in named[0], named
+    assert len(named) == 1 and "view(s) 4 (masks/04.png, weight" in named[0], named
     weights = result.view_weights
     assert weights[4] < 0.7 and np.all(np.delete(weights, 4) == 1), weights
     assert result.report["down_weighted_views"] == [4]

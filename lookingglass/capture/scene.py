@@ -323,6 +323,11 @@ class Capture:
         return [self.root / v.mask for v in self.spec.views]
 
     @property
+    def mask_names(self) -> list[str]:
+        """The masks' files as scene.json names them (relative to the folder), for messages about a view."""
+        return [v.mask for v in self.spec.views]
+
+    @property
     def envmap_path(self) -> Path:
         return self.root / self.spec.envmap
 
