@@ -333,6 +333,8 @@ def demo(
 
     if views not in (5, 10, 20):
         raise LookingGlassError(f"--views must be 5, 10 or 20, got {views}")
+    if seed < 0:
+        raise LookingGlassError(f"--seed must be >= 0, got {seed}")
     size = check_image_size(size, "--size")
     config = dataclasses.replace(make_preset(DEFAULT_PRESET).pipeline, device=device).resolved()
     reporter = Reporter(quiet=quiet)
@@ -392,6 +394,34 @@ def generate(
                   f"({summary['seconds']:.1f} s, {summary['workers']} worker(s){rate})")
 
 
+def _outside_inputs(path: Optional[Path], what: str, inputs) -> None:
+    """Refuse an output `path` (--json, a run folder) that is one of `inputs` (files or folders) or
+    lies inside one (it would overwrite it), that holds one, or that is a folder where a file is
+    written (`what` "file")."""
+    from .fileio import resolved_path
+
+    if path is None:
+        return
+    if what == "file" and path.is_dir():
+        raise LookingGlassError("is a folder; give a file name", path)
+    out = resolved_path(path)
+    for p in inputs:
+        q = resolved_path(p)
+        if out == q or q in out.parents or out in q.parents:
+            raise LookingGlassError(f"would write into the input {p}; give a {what} outside it", path)
+
+
+def _splits(data: Path) -> list[Path]:
+    """A dataset's scene folders: a JSON or a run folder beside them in DATA/ is fine, not in them."""
+    return [Path(data) / "train", Path(data) / "test"]
+
+
+def _max_scenes(n: int) -> int:
+    if n < 0:
+        raise LookingGlassError(f"--max-scenes must be at least 0 (0: all), got {n}")
+    return n
+
+
 def _device(name: str) -> str:
     """--device resolved ('auto': cuda when present); imported late, as the CLI's other modules."""
     from .config import resolve_device
@@ -421,6 +451,7 @@ def train_normals(
     from .progress import Reporter
 
     device = _device(device)  # checked before any work
+    _outside_inputs(out, "run folder", _splits(data))
     if variant is not None and variant not in VARIANTS:
         raise LookingGlassError(f"--variant must be one of {', '.join(VARIANTS)}, got {variant!r}")
     config = apply_config_flags(ctx, make_preset(preset).normal_training)
@@ -453,6 +484,7 @@ def train_points(
     from .weights import load_normal_net
 
     device = _device(device)  # checked before any work
+    _outside_inputs(out, "run folder", _splits(data))
     config = apply_config_flags(ctx, make_preset(preset).point_training)
     views = load_normal_net(normals).net.cfg.num_views
     dataset = TransparentSceneDataset(data, "train", views=views, augment=False)
@@ -476,6 +508,7 @@ def train_ior(
     from .progress import Reporter
 
     device = _device(device)  # checked before any work
+    _outside_inputs(out, "run folder", _splits(data))
     config = apply_config_flags(ctx, make_preset().ior_training)
     train_ior_net(TransparentSceneDataset(data, "train"), out, config, device=device, reporter=Reporter(quiet=quiet))
 
@@ -509,6 +542,8 @@ def eval_normals(
         if not sep or name not in ("basic", "wr", "wr+cv"):
             raise LookingGlassError(f"--weights takes VARIANT=PATH with VARIANT basic, wr or wr+cv, got {item!r}")
         paths[name] = Path(path)
+    _max_scenes(max_scenes)
+    _outside_inputs(json_out, "file", [*_splits(data), *paths.values()])
     latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
     dataset = TransparentSceneDataset(data, "test", views=views)
     table = evaluate_normals(dataset, paths, latent, max_scenes, Reporter(quiet=quiet), device, workers, ior=held)
@@ -572,8 +607,10 @@ def eval_shapes(
     if weights is None:
         raise LookingGlassError(f"no weights ship for {views} views; pass --weights")
     latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
+    _max_scenes(max_scenes)
     dataset = TransparentSceneDataset(data, "test", views=views)
     point_weights = point_weights or shipped_weights(views, "points")[0]
+    _outside_inputs(json_out, "file", [*_splits(data), weights, *([point_weights] if point_weights else [])])
     settings = {"data": str(Path(data).resolve()), "weights": str(Path(weights).resolve()), "views": views,
                 "surface_points": surface.points,
                 "strategies": list(chosen), "latent_iterations": latent_iterations,
@@ -627,6 +664,12 @@ def generate_validation(
     if views not in (5, 10, 20):
         raise LookingGlassError(f"--views must be 5, 10 or 20, got {views}")
     size = check_image_size(size, "--size")
+    if seed < 0:
+        raise LookingGlassError(f"--seed must be >= 0, got {seed}")
+    if not 1 <= samples_per_axis <= 64:
+        raise LookingGlassError(f"--samples-per-axis must be from 1 to 64, got {samples_per_axis}")
+    if out.exists() and not out.is_dir():
+        raise LookingGlassError("exists and is not a folder", out)
     names = [n.strip() for n in shapes.split(",") if n.strip()] or None
     bounds = None if ior_range is None else check_ior_range(ior_range, "--ior-range")
     path = generate_validation_set(out, names, views, size, samples_per_axis, seed, reporter=Reporter(quiet=quiet),

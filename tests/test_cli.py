@@ -180,3 +180,21 @@ def test_reconstruct_reruns_a_saved_config_and_refuses_bad_values(rendered_scene
         proc = run("reconstruct", root / "scene", "--out", tmp_path / "c", *bad, ok=False)
         assert proc.returncode == 2 and said in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
         assert not (tmp_path / "c").exists()
+
+
+@pytest.mark.parametrize("args, words", [
+    (["generate", "--out", "{file}", "--scenes", 1, "--views", 5], "exists and is not a folder"),
+    (["generate", "--out", "{dir}/g", "--scenes", 1_000_000_000, "--views", 5], "--scenes must be from 1 to"),
+    (["generate-validation", "--out", "{file}", "--shapes", "nut", "--size", 32, 24], "exists and is not a folder"),
+    (["generate-validation", "--out", "{dir}/v", "--shapes", "nut", "--size", 32, 24, "--samples-per-axis", 0],
+     "--samples-per-axis must be from 1 to 64"),
+    (["generate-validation", "--out", "{dir}/v", "--shapes", "nut", "--size", 32, 24, "--seed", -1], "--seed must be"),
+    (["demo", "--out", "{dir}/d", "--seed", -1, "--size", 32, 24], "--seed must be >= 0"),
+])
+def test_data_commands_refuse_bad_options_in_one_line(tmp_path, args, words):
+    """Found by an audit: each was a traceback, a hang on a 10^9-scene index list, or a long silent run."""
+    (tmp_path / "plain.txt").write_text("mine")
+    args = [str(a).replace("{file}", str(tmp_path / "plain.txt")).replace("{dir}", str(tmp_path)) for a in args]
+    proc = run(*args, ok=False, timeout=120)
+    assert proc.returncode == 2 and words in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    assert (tmp_path / "plain.txt").read_text() == "mine" and sorted(p.name for p in tmp_path.iterdir()) == ["plain.txt"]

@@ -123,3 +123,61 @@ def test_weights_without_their_config_fail_once_in_the_parent(two_scene_split, t
     assert proc.returncode == 2, proc.stderr
     assert "copied.json" in proc.stderr and "network config not found" in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def _sha(root) -> dict:
+    import hashlib
+    from pathlib import Path
+
+    return {str(p): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(Path(root).rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("command", ["eval-shapes", "eval-normals"])
+def test_json_output_never_overwrites_an_input(two_scene_split, tmp_path, command):
+    """--json into the dataset or onto the weights was written over them (eval-normals, exit 0)."""
+    root = two_scene_split
+    weights = tmp_path / "w.safetensors"
+    weights.write_bytes(shipped_weights(10)[0].read_bytes())
+    weights.with_suffix(".json").write_text(shipped_weights(10)[0].with_suffix(".json").read_text())
+    spec = str(weights) if command == "eval-shapes" else f"wr+cv={weights}"
+    before, before_w = _sha(root), _sha(tmp_path)
+    for target, words in ((root / "test" / "scene_00000" / "mesh.ply", "would write into the input"),
+                          (root, "is a folder"),
+                          (weights, "would write into the input"), (tmp_path, "is a folder")):
+        proc = run(command, "--data", root, "--weights", spec, "--max-scenes", 1, "--json", target, ok=False)
+        assert proc.returncode == 2 and words in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    assert _sha(root) == before and _sha(tmp_path) == before_w
+
+
+def test_a_damaged_scene_is_an_error_not_a_shorter_table(two_scene_split, tmp_path):
+    """A scene with a file missing was left out and the table printed over the rest, exit 0."""
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(two_scene_split, data)
+    (data / "test" / "scene_00001" / "maps.npz").unlink()
+    for command in (["eval-normals", "--weights", f"wr+cv={shipped_weights(10)[0]}"], ["eval-shapes"]):
+        proc = run(*command, "--data", data, ok=False)
+        assert proc.returncode == 2 and "scene_00001" in proc.stderr and "unfinished or damaged" in proc.stderr, \
+            proc.stderr
+    proc = run("eval-shapes", "--data", two_scene_split, "--max-scenes", -1, ok=False)
+    assert proc.returncode == 2 and "--max-scenes must be at least 0" in proc.stderr
+
+
+def test_a_truncated_scene_file_is_named(two_scene_split, tmp_path):
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(two_scene_split, data)
+    maps = data / "test" / "scene_00000" / "maps.npz"
+    maps.write_bytes(maps.read_bytes()[:300])
+    proc = run("eval-normals", "--weights", f"wr+cv={shipped_weights(10)[0]}", "--data", data, "--max-scenes", 1,
+               "--workers", 1, ok=False)
+    assert proc.returncode == 2 and "maps.npz: cannot read scene maps" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_a_run_folder_inside_the_dataset_is_refused(two_scene_split):
+    """A training run writes its config.json, checkpoints and weights: never into the dataset."""
+    for out in (two_scene_split / "test", two_scene_split / "test" / "scene_00000", two_scene_split):
+        proc = run("train-normals", "--data", two_scene_split, "--out", out, ok=False)
+        assert proc.returncode == 2 and "would write into the input" in proc.stderr, proc.stderr

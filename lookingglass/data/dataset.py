@@ -55,6 +55,7 @@ import re
 import shutil
 import time
 import warnings
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -170,12 +171,15 @@ def parse_shard(text: str) -> tuple[int, int]:
     return k, n
 
 
+MAX_SCENES = 1_000_000  # a split's scene count at most (a typo of 1e9 would list every index first)
+
+
 def _check_args(scenes: int, views: int, split: str, shard: tuple[int, int], workers: int | None,
                 seed: int = 0) -> None:
     if seed < 0:
         raise LookingGlassError(f"--seed must be >= 0, got {seed}")
-    if scenes < 1:
-        raise LookingGlassError(f"--scenes must be at least 1, got {scenes}")
+    if not 1 <= scenes <= MAX_SCENES:
+        raise LookingGlassError(f"--scenes must be from 1 to {MAX_SCENES}, got {scenes}")
     if views not in RIG_VIEWS:
         raise LookingGlassError(f"--views must be 5, 10 or 20 (the paper's rigs), got {views}")
     if split not in SPLITS:
@@ -460,6 +464,8 @@ def prepare_split_dir(out, split: str, seed: int, views: int, config: DatasetCon
     """Create OUT/SPLIT with its config.json, or check that an existing one matches."""
     from ..fileio import write_json
 
+    if Path(out).exists() and not Path(out).is_dir():
+        raise LookingGlassError("the dataset folder exists and is not a folder", out)
     split_dir = Path(out) / split
     wanted = _split_config(split, seed, views, config)
     path = split_dir / "config.json"
@@ -546,8 +552,9 @@ def load_maps(scene_dir) -> dict[str, np.ndarray]:
     try:
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
-    except (OSError, ValueError) as exc:
-        raise LookingGlassError(f"cannot read scene maps ({exc})", path) from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # a truncated file is not a zip
+        raise LookingGlassError(f"cannot read scene maps ({exc}); re-run `lookingglass generate` with the same "
+                                "options to remake the scene", path) from None
 
 
 def load_scene_meta(scene_dir) -> dict:

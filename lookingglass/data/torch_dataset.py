@@ -111,9 +111,16 @@ class TransparentSceneDataset(Dataset):
         self.stored_views = int(saved["views"])
         self.view_index = None if views is None or views == self.stored_views else rig_subset(self.stored_views, views)
         self.views = self.stored_views if views is None else int(views)
-        self.scene_dirs = sorted(p for p in self.split_dir.glob("scene_*") if p.is_dir() and is_finished(p))
+        folders = sorted(p for p in self.split_dir.glob("scene_*") if p.is_dir())
+        self.scene_dirs = [p for p in folders if is_finished(p)]
         if not self.scene_dirs:
             raise LookingGlassError("no finished scenes (scene_*/meta.json)", self.split_dir)
+        unfinished = [p.name for p in folders if p not in self.scene_dirs]
+        if unfinished:  # a table or a training run over what is left would be a silent partial result
+            raise LookingGlassError(
+                f"{len(unfinished)} scene(s) unfinished or damaged ({', '.join(unfinished[:3])}"
+                f"{', ...' if len(unfinished) > 3 else ''}: meta.json unreadable or a data file missing); re-run "
+                "`lookingglass generate` with the same options to finish them", self.split_dir)
         self.augment, self.seed = bool(augment), int(seed)
         self.target_mean, self.mean_range = float(target_mean), tuple(float(m) for m in mean_range)
         self.photo_noise = float(photo_noise)
