@@ -555,7 +555,25 @@ def real_ior(command: str, ior: float) -> Callable:
     return setup
 
 
+def real_ball_map_over_a_photo(root, work):
+    """--out onto one of the ball photos it reads, with --force: it replaced the photo."""
+    copy_real(root, work)
+    photo = sorted((work / "ball").iterdir())[0]
+    return (["envmap-from-ball", "--model", work / "model", "--images", work / "ball", "--out",
+             photo.with_suffix(".hdr"), "--size", 32, 16, "--force"], photo.with_suffix(".hdr").name,
+            ("inside the input folder",))
+
+
+def real_capture_into_photos(root, work):
+    """capture's work folder inside the photo folder: sfm/ and the rest were written among the photos."""
+    copy_real(root, work)
+    return (["capture", "--photos", work / "photos", "--ball", work / "ball", "--masks", work / "masks", "--out",
+             work / "photos" / "work", "--quiet"], "work", ("outside the input folder",))
+
+
 REAL_PROBES = [Probe("import-colmap-ior", real_ior("import-colmap", 3.5)),
+               Probe("ball-map-over-a-photo", real_ball_map_over_a_photo),
+               Probe("capture-into-the-photos", real_capture_into_photos),
                Probe("capture-ior", real_ior("capture", 0.5)),
                Probe("photo-other-size", real_photo_other_size), Probe("model-lacks-photo", real_model_lacks_photo),
                Probe("mask-other-size", real_mask_other_size), Probe("ball-not-found", real_ball_not_found),

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 
 from ..errors import LookingGlassError
-from ..fileio import check_output_dir, write_json
+from ..fileio import check_output_dir, resolved_path, write_json
 from ..physics.environment import texel_directions
 from .colmap import ColmapView, read_model
 from .config import BallConfig
@@ -413,6 +413,10 @@ def envmap_from_ball(model: str | os.PathLike, images: str | os.PathLike, out: s
         for p in (out, preview, record_path):
             if p.exists():
                 raise LookingGlassError("already exists (use --force to replace it)", p)
+    for p in (out, preview, record_path):  # never over an input photo, nor into the folders read
+        for folder in (images, model):
+            if resolved_path(folder) in resolved_path(p).parents:
+                raise LookingGlassError(f"is inside the input folder {folder}; write the map elsewhere", p)
     check_output_dir(out.parent, True)  # a folder we may write (made if missing)
     colmap = read_model(model)
     user_circles = read_circles(circles) if circles is not None else None

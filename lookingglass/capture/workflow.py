@@ -16,6 +16,7 @@ import shutil
 from pathlib import Path
 
 from ..errors import LookingGlassError
+from ..fileio import resolved_path
 from ..physics.constants import IOR_GLASS, check_ior
 from .config import CaptureConfig
 
@@ -39,6 +40,11 @@ def run_capture(photos: str | os.PathLike, ball: str | os.PathLike, masks: str |
             raise LookingGlassError("folder not found" if not p.exists() else "not a folder", p)
     if photos.resolve() == ball.resolve():
         raise LookingGlassError("--photos and --ball must be different folders", ball)
+    if out.exists() and not out.is_dir():
+        raise LookingGlassError("the work folder exists and is not a folder", out)
+    for p in (photos, ball, masks):  # sfm/ and the rest are written into out: not among the inputs
+        if resolved_path(p) == resolved_path(out) or resolved_path(p) in resolved_path(out).parents:
+            raise LookingGlassError(f"the work folder must lie outside the input folder {p}", out)
     out.mkdir(parents=True, exist_ok=True)
     sfm_dir, env, scene, result = out / "sfm", out / "envmap.hdr", out / "scene", out / "result"
     if (sfm_dir / SFM_FILE).is_file() and (sfm_dir / "model").is_dir():
