@@ -58,6 +58,12 @@ class IorNetConfig:
     bins: int = setting(41, "Output bins over bin_range.", range=(2, None))
     widths: list[int] = field(default_factory=lambda: [48, 64, 96])
 
+    def __post_init__(self) -> None:
+        check_ranges(self)
+        lo, hi = self.bin_range
+        if not 1.0 <= lo < hi <= 3.0:
+            raise ConfigError(f"bin_range must be LO HI with 1 <= LO < HI <= 3, got {lo} {hi}")
+
     @property
     def in_channels(self) -> int:
         return 11 + 2 * len(self.candidates)  # image 3, mask 1, N1 3, N2 3, valid 1; per candidate error, valid

@@ -184,6 +184,13 @@ def test_reconstruct_reruns_a_saved_config_and_refuses_bad_values(rendered_scene
 
 @pytest.mark.parametrize("args, words", [
     (["generate", "--out", "{file}", "--scenes", 1, "--views", 5], "exists and is not a folder"),
+    (["generate", "--out", "{dir}/g", "--scenes", 1, "--shape.max-tries", 0], "shape.max_tries must be at least 1"),
+    (["generate", "--out", "{dir}/g", "--scenes", 1, "--shape.first-size", "nan", "nan"], "shape.first_size must be"),
+    (["train-normals", "--data", "{dir}/none", "--out", "{dir}/r", "--net.groups", 3], "groups (3) must divide"),
+    (["train-normals", "--data", "{dir}/none", "--out", "{dir}/r", "--net.cost-volume-k", 0], "cost_volume_k must be"),
+    (["train-ior", "--data", "{dir}/none", "--out", "{dir}/r", "--net.bins", 0], "bins must be at least 2"),
+    (["train-points", "--data", "{dir}/none", "--normals", "{file}", "--out", "{dir}/r", "--net.num-points", 0],
+     "num_points must be at least 1"),
     (["generate", "--out", "{dir}/g", "--scenes", 1_000_000_000, "--views", 5], "--scenes must be from 1 to"),
     (["generate-validation", "--out", "{file}", "--shapes", "nut", "--size", 32, 24], "exists and is not a folder"),
     (["generate-validation", "--out", "{dir}/v", "--shapes", "nut", "--size", 32, 24, "--samples-per-axis", 0],
@@ -192,7 +199,8 @@ def test_reconstruct_reruns_a_saved_config_and_refuses_bad_values(rendered_scene
     (["demo", "--out", "{dir}/d", "--seed", -1, "--size", 32, 24], "--seed must be >= 0"),
 ])
 def test_data_commands_refuse_bad_options_in_one_line(tmp_path, args, words):
-    """Found by an audit: each was a traceback, a hang on a 10^9-scene index list, or a long silent run."""
+    """Found by an audit: each was a traceback (some after a run folder's config.json was written), a hang
+    on a 10^9-scene index list, a long silent run, or (train-ior's 0 bins) useless weights, exit 0."""
     (tmp_path / "plain.txt").write_text("mine")
     args = [str(a).replace("{file}", str(tmp_path / "plain.txt")).replace("{dir}", str(tmp_path)) for a in args]
     proc = run(*args, ok=False, timeout=120)

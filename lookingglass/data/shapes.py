@@ -26,6 +26,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from skimage import measure
 
+from ..errors import ConfigError
 from ..meshes import TAUBIN_LAMBDA, TAUBIN_MU, largest_component, orient_outward
 
 KINDS = ("ellipsoid", "box", "cylinder", "capsule", "torus", "plate", "rod")
@@ -81,6 +82,33 @@ class ShapeConfig:
     projection_steps: int = 3
     """Newton steps projecting the vertices onto the exact zero set of the analytic field."""
     max_tries: int = 8
+
+    def __post_init__(self) -> None:
+        """Bad settings are refused here, not found by every draw failing (or a NumPy traceback)."""
+        def fail(name: str, want: str, got) -> ConfigError:
+            return ConfigError(f"shape.{name} must be {want}, got {got}")
+
+        for name in ("resolution", "num_primitives", "first_size", "part_size", "thin_half_thickness", "blend",
+                     "noise_amplitude", "noise_frequency"):
+            lo, hi = getattr(self, name)
+            if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi):
+                raise fail(name, "LO HI with 0 <= LO <= HI (finite)", f"{lo} {hi}")
+        if self.resolution[0] < 8 or self.coarse_resolution < 8:
+            raise fail("resolution", "at least 8 (and coarse_resolution too)", f"{self.resolution}, {self.coarse_resolution}")
+        if self.num_primitives[0] < 1:
+            raise fail("num_primitives", "at least 1", self.num_primitives[0])
+        for name in ("target_faces", "max_faces", "max_tries"):
+            if getattr(self, name) < 1:
+                raise fail(name, "at least 1", getattr(self, name))
+        for name in ("min_faces", "max_carves", "noise_terms", "taubin_steps", "projection_steps"):
+            if getattr(self, name) < 0:
+                raise fail(name, "at least 0", getattr(self, name))
+        if not 0 <= self.p_carve <= 1:
+            raise fail("p_carve", "in [0, 1]", self.p_carve)
+        weights = dict(self.kind_weights)
+        if set(weights) - set(KINDS) or not all(math.isfinite(w) and w >= 0 for w in weights.values()) \
+                or sum(weights.values()) <= 0:
+            raise fail("kind_weights", f"non-negative weights of {', '.join(KINDS)}, not all 0", weights)
 
 
 @dataclass

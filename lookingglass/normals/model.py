@@ -16,7 +16,8 @@ from typing import ClassVar
 import torch
 from torch import Tensor, nn
 
-from ..configio import setting
+from ..configio import check_ranges, setting
+from ..errors import ConfigError
 from ..physics.camera import Cameras
 from ..physics.environment import EnvironmentMap
 from ..physics.optics import IOR_AIR, IOR_GLASS
@@ -31,15 +32,16 @@ COST_VOLUME_THETA_DEG = {5: 25.0, 10: 15.0, 20: 10.0}
 class NormalNetConfig:
     """Widths of NNet/FNet and the ablation switches. `paper` sizes are the paper's."""
 
-    width: int = setting(256, "Input width (the data's).")
-    height: int = setting(192, "Input height (the data's).")
-    enc_channels: tuple[int, int, int] = setting((64, 256, 512), "Encoder widths, finest first.")
-    fnet_channels: int = setting(64, "FNet (cost-volume feature) width.")
-    groups: int = setting(16, "GroupNorm groups.")
+    width: int = setting(256, "Input width (the data's).", range=(8, None))
+    height: int = setting(192, "Input height (the data's).", range=(8, None))
+    enc_channels: tuple[int, int, int] = setting((64, 256, 512), "Encoder widths, finest first.", range=(1, None))
+    fnet_channels: int = setting(64, "FNet (cost-volume feature) width.", range=(1, None))
+    groups: int = setting(16, "GroupNorm groups (each width a multiple of them).", range=(1, None))
     use_error_map: bool = setting(True, "Feed the hull normals' rendering error and TIR mask (wr).")
     use_cost_volume: bool = setting(True, "Add the cost volume (wr+cv).")
-    num_views: int = setting(10, "Views per scene.")
-    cost_volume_k: int = setting(4, "Candidate normals per interface in the cost volume (K; K x K pairs).")
+    num_views: int = setting(10, "Views per scene.", range=(2, None))
+    cost_volume_k: int = setting(4, "Candidate normals per interface in the cost volume (K; K x K pairs).",
+                                 range=(1, None))
     cost_volume_theta_deg: float | None = setting(None, "Cost-volume angle (degrees; default: the supplement's for "
                                                         "num_views).")
     # Ours, not the paper's: predict a correction to the hull's normals, normalize(Ñ + tanh(out)),
@@ -68,6 +70,14 @@ class NormalNetConfig:
     # Weights without the gain head or the detail head may start the training of one
     # (NormalNet.widen_initial_state).
     FINE_TUNE_WIDEN: ClassVar[frozenset] = frozenset({"gain_head", "detail_head"})
+
+    def __post_init__(self) -> None:
+        check_ranges(self)
+        widths = (*self.enc_channels, 2 * self.enc_channels[0], self.fnet_channels)  # what the blocks normalize
+        uneven = sorted({c for c in widths if c % min(self.groups, c)})
+        if uneven:
+            raise ConfigError(f"groups ({self.groups}) must divide every width (enc_channels and fnet_channels; "
+                              f"not {', '.join(map(str, uneven))})")
 
     @property
     def in_channels(self) -> int:

@@ -95,7 +95,7 @@ class PointNetConfig:
     FINE_TUNE_WIDEN = frozenset({"in_features"})
 
     in_features: int = setting(NUM_FEATURES, "Input columns read from the features (the first in_features).")
-    num_points: int = setting(20000, "Points per cloud the stage samples on the hull.")
+    num_points: int = setting(20000, "Points per cloud the stage samples on the hull.", range=(1, None))
     centres: tuple[int, ...] = (1024, 256, 64, 16)
     radii: tuple[float, ...] = (0.1, 0.2, 0.4, 0.8)
     neighbours: tuple[int, ...] = (64, 32, 32, 32)
