@@ -416,9 +416,11 @@ def _splits(data: Path) -> list[Path]:
     return [Path(data) / "train", Path(data) / "test"]
 
 
-def _max_scenes(n: int) -> int:
+def _max_scenes(n: int, workers: int = 0) -> int:
     if n < 0:
         raise LookingGlassError(f"--max-scenes must be at least 0 (0: all), got {n}")
+    if workers < 0:
+        raise LookingGlassError(f"--workers must be at least 0 (0: one per core), got {workers}")
     return n
 
 
@@ -542,7 +544,7 @@ def eval_normals(
         if not sep or name not in ("basic", "wr", "wr+cv"):
             raise LookingGlassError(f"--weights takes VARIANT=PATH with VARIANT basic, wr or wr+cv, got {item!r}")
         paths[name] = Path(path)
-    _max_scenes(max_scenes)
+    _max_scenes(max_scenes, workers)
     _outside_inputs(json_out, "file", [*_splits(data), *paths.values()])
     latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
     dataset = TransparentSceneDataset(data, "test", views=views)
@@ -607,7 +609,7 @@ def eval_shapes(
     if weights is None:
         raise LookingGlassError(f"no weights ship for {views} views; pass --weights")
     latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
-    _max_scenes(max_scenes)
+    _max_scenes(max_scenes, workers)
     dataset = TransparentSceneDataset(data, "test", views=views)
     point_weights = point_weights or shipped_weights(views, "points")[0]
     _outside_inputs(json_out, "file", [*_splits(data), weights, *([point_weights] if point_weights else [])])
@@ -695,6 +697,7 @@ def validate(
 
     config = apply_config_flags(ctx, make_preset(preset or DEFAULT_PRESET).pipeline)
     names = [n.strip() for n in shapes.split(",") if n.strip()] or None
+    _outside_inputs(out, "folder", [data])
     result = evaluate_validation_set(data, out, config, names, Reporter(quiet=quiet))
     print(markdown_table(result))
 

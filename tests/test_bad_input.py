@@ -574,6 +574,9 @@ def real_capture_into_photos(root, work):
 REAL_PROBES = [Probe("import-colmap-ior", real_ior("import-colmap", 3.5)),
                Probe("ball-map-over-a-photo", real_ball_map_over_a_photo),
                Probe("capture-into-the-photos", real_capture_into_photos),
+               Probe("sfm-into-the-photos", lambda root, work: (
+                   ["sfm", "--images", copy_real(root, work) / "photos", "--out", work / "photos" / "sfm", "--quiet"],
+                   "sfm", ("inside the photo folder",))),
                Probe("capture-ior", real_ior("capture", 0.5)),
                Probe("photo-other-size", real_photo_other_size), Probe("model-lacks-photo", real_model_lacks_photo),
                Probe("mask-other-size", real_mask_other_size), Probe("ball-not-found", real_ball_not_found),

@@ -159,6 +159,8 @@ def run_sfm(image_dirs: list[str | os.PathLike], out: str | os.PathLike, masks: 
     for d in dirs:
         if out.resolve() == d.resolve() or out.resolve() in d.resolve().parents:
             raise LookingGlassError(f"output folder would replace the input {d}", out)
+        if d.resolve() in out.resolve().parents:  # database.db and model/ among the photos
+            raise LookingGlassError(f"output folder is inside the photo folder {d}; put it elsewhere", out)
     root, names, files = _photos(dirs)
     W, H = _check_sizes(files)
     check_output_dir(out / "model", True)

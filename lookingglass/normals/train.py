@@ -37,7 +37,7 @@ class TrainConfig:
     lr_halve_epochs: int = setting(2, "The learning rate halves every this many epochs.", range=(1, None))
     checkpoint_every: int = setting(50, "Steps between checkpoints.", range=(1, None))
     seed: int = setting(0, "Initialization, shuffling and augmentation seed.")
-    ior: float = setting(IOR_GLASS, "Index of refraction of the glass.", range=(1, None))
+    ior: float = setting(IOR_GLASS, "Index of refraction of the glass.", range=(1.0, 3.0))
     augment: bool = setting(True, "Augment the training scenes.")
     photo_noise: float = setting(0.0, "Chance that an augmented scene is degraded like an 8-bit photo (noise, "
                                       "sRGB quantization).", range=(0, 1))

@@ -103,7 +103,7 @@ class PointTrainConfig:
     checkpoint_every: int = setting(50, "Steps between checkpoints.", range=(1, None))
     seed: int = setting(0, "Initialization, shuffling and point-sampling seed.")
     max_scenes: int = setting(0, "Use only the first N scenes (0: all).", range=(0, None))
-    ior: float = setting(IOR_GLASS, "Index of refraction of the glass.", range=(1, None))
+    ior: float = setting(IOR_GLASS, "Index of refraction of the glass.", range=(1.0, 3.0))
     init: str = setting("", "Start from these weights.safetensors (fine-tuning; same network config) instead of "
                             "a random initialization.")
 
