@@ -398,16 +398,14 @@ def _outside_inputs(path: Optional[Path], what: str, inputs) -> None:
     """Refuse an output `path` (--json, a run folder) that is one of `inputs` (files or folders) or
     lies inside one (it would overwrite it), that holds one, or that is a folder where a file is
     written (`what` "file")."""
-    from .fileio import resolved_path
+    from .fileio import within
 
     if path is None:
         return
     if what == "file" and path.is_dir():
         raise LookingGlassError("is a folder; give a file name", path)
-    out = resolved_path(path)
     for p in inputs:
-        q = resolved_path(p)
-        if out == q or q in out.parents or out in q.parents:
+        if within(path, p) or within(p, path):
             raise LookingGlassError(f"would write into the input {p}; give a {what} outside it", path)
 
 

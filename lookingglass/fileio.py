@@ -83,19 +83,25 @@ def resolved_path(path: str | os.PathLike) -> Path:
         raise LookingGlassError(f"cannot follow the path ({exc}): a loop of symbolic links?", path) from None
 
 
+def within(path: str | os.PathLike, folder: str | os.PathLike) -> bool:
+    """Whether `path` is `folder` or lies inside it, symbolic links followed (neither need exist)."""
+    inner, outer = resolved_path(path), resolved_path(folder)
+    return inner == outer or outer in inner.parents
+
+
 def check_output_dir(out: str | os.PathLike, force: bool, inputs: Iterable[str | os.PathLike] = ()) -> None:
     """Refuse, before any work starts, an output folder that a run could not write or must not
     replace (LookingGlassError naming it): a path that exists and is not a folder; a non-empty
     folder without `force`; a folder that is, or holds, one of `inputs` (files or folders: replacing
-    it would delete the input); a folder (or, when it does not exist yet, its nearest existing parent) that is not a
-    folder or that this process may not write. Missing parents are fine: `staged_dir` makes them."""
+    it would delete the input); a folder (or, when it does not exist yet, its nearest existing
+    parent) that is not a folder or that this process may not write. Missing parents are fine:
+    `staged_dir` makes them."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise LookingGlassError("output path exists and is not a folder", out)
     resolved = resolved_path(out)
     for p in inputs:
-        q = resolved_path(p)
-        if q == resolved or resolved in q.parents:
+        if within(p, out):
             raise LookingGlassError(f"output folder would replace the input {p}", out)
     if out.is_dir():
         if any(out.iterdir()) and not force:

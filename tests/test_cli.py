@@ -208,4 +208,5 @@ def test_data_commands_refuse_bad_options_in_one_line(tmp_path, args, words):
     args = [str(a).replace("{file}", str(tmp_path / "plain.txt")).replace("{dir}", str(tmp_path)) for a in args]
     proc = run(*args, ok=False, timeout=120)
     assert proc.returncode == 2 and words in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
-    assert (tmp_path / "plain.txt").read_text() == "mine" and sorted(p.name for p in tmp_path.iterdir()) == ["plain.txt"]
+    assert (tmp_path / "plain.txt").read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["plain.txt"]

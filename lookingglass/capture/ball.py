@@ -39,7 +39,7 @@ import numpy as np
 import torch
 
 from ..errors import LookingGlassError
-from ..fileio import check_output_dir, resolved_path, write_json
+from ..fileio import check_output_dir, within, write_json
 from ..physics.environment import texel_directions
 from .colmap import ColmapView, read_model
 from .config import BallConfig
@@ -415,7 +415,7 @@ def envmap_from_ball(model: str | os.PathLike, images: str | os.PathLike, out: s
                 raise LookingGlassError("already exists (use --force to replace it)", p)
     for p in (out, preview, record_path):  # never over an input photo, nor into the folders read
         for folder in (images, model):
-            if resolved_path(folder) in resolved_path(p).parents:
+            if within(p, folder):
                 raise LookingGlassError(f"is inside the input folder {folder}; write the map elsewhere", p)
     check_output_dir(out.parent, True)  # a folder we may write (made if missing)
     colmap = read_model(model)

@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from ..errors import LookingGlassError
-from ..fileio import check_output_dir, staged_dir, write_json, write_atomic
+from ..fileio import check_output_dir, staged_dir, within, write_atomic, write_json
 from .colmap import read_model
 from .config import SfmConfig
 from .images import HDR_SUFFIXES, read_image, read_mask, write_image
@@ -157,9 +157,9 @@ def run_sfm(image_dirs: list[str | os.PathLike], out: str | os.PathLike, masks: 
     if out.exists() and not out.is_dir():
         raise LookingGlassError("output path exists and is not a folder", out)
     for d in dirs:
-        if out.resolve() == d.resolve() or out.resolve() in d.resolve().parents:
+        if within(d, out):
             raise LookingGlassError(f"output folder would replace the input {d}", out)
-        if d.resolve() in out.resolve().parents:  # database.db and model/ among the photos
+        if within(out, d):  # database.db and model/ among the photos
             raise LookingGlassError(f"output folder is inside the photo folder {d}; put it elsewhere", out)
     root, names, files = _photos(dirs)
     W, H = _check_sizes(files)

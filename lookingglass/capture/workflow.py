@@ -16,7 +16,7 @@ import shutil
 from pathlib import Path
 
 from ..errors import LookingGlassError
-from ..fileio import resolved_path
+from ..fileio import within
 from ..physics.constants import IOR_GLASS, check_ior
 from .config import CaptureConfig
 
@@ -43,7 +43,7 @@ def run_capture(photos: str | os.PathLike, ball: str | os.PathLike, masks: str |
     if out.exists() and not out.is_dir():
         raise LookingGlassError("the work folder exists and is not a folder", out)
     for p in (photos, ball, masks):  # sfm/ and the rest are written into out: not among the inputs
-        if resolved_path(p) == resolved_path(out) or resolved_path(p) in resolved_path(out).parents:
+        if within(out, p):
             raise LookingGlassError(f"the work folder must lie outside the input folder {p}", out)
     out.mkdir(parents=True, exist_ok=True)
     sfm_dir, env, scene, result = out / "sfm", out / "envmap.hdr", out / "scene", out / "result"

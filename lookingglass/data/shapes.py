@@ -94,7 +94,8 @@ class ShapeConfig:
             if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi):
                 raise fail(name, "LO HI with 0 <= LO <= HI (finite)", f"{lo} {hi}")
         if self.resolution[0] < 8 or self.coarse_resolution < 8:
-            raise fail("resolution", "at least 8 (and coarse_resolution too)", f"{self.resolution}, {self.coarse_resolution}")
+            raise fail("resolution", "at least 8 (and coarse_resolution too)",
+                       f"{self.resolution}, {self.coarse_resolution}")
         if self.num_primitives[0] < 1:
             raise fail("num_primitives", "at least 1", self.num_primitives[0])
         for name in ("target_faces", "max_faces", "max_tries"):

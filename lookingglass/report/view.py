@@ -22,8 +22,8 @@ def report_path(target: str | Path) -> Path:
     if not path.exists():
         raise LookingGlassError(f"no {REPORT_NAME} here (a `lookingglass reconstruct` output folder has one)", path)
     if path.suffix.lower() not in (".html", ".htm"):
-        raise LookingGlassError(f"not a report (expected a `lookingglass reconstruct` output folder or its {REPORT_NAME})",
-                                path)
+        raise LookingGlassError("not a report (expected a `lookingglass reconstruct` output folder or its "
+                                f"{REPORT_NAME})", path)
     return path
 
 
