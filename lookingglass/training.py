@@ -161,10 +161,10 @@ class TrainingSession:
         self.reporter = reporter or Reporter(quiet=self.rank != 0)
         if self.rank != 0:
             self.reporter = Reporter(quiet=True)
+        if config.init:  # before config.json is written: a bad --init must not hold the run folder
+            check_initial_weights(config.init, config.net)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self._check_config()
-        if config.init:
-            check_initial_weights(config.init, config.net)
 
     def _check_config(self) -> None:
         record_or_compare(self.run_dir / "config.json", dataclasses.asdict(self.config), self.rank,

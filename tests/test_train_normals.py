@@ -107,6 +107,8 @@ def test_init_across_view_counts(tiny_dataset, tmp_path):
     wide.net.fnet_channels = 32
     with pytest.raises(LookingGlassError, match="another network.*fnet_channels"):
         train_normals(ds, tmp_path / "wide", dataclasses.replace(wide, init=str(init)))
+    # refused before the run folder is made: its config.json would refuse the corrected rerun
+    assert not (tmp_path / "wide").exists()
 
 
 def test_angle_loss_is_the_angle():
