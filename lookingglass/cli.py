@@ -486,8 +486,12 @@ def train_points(
     device = _device(device)  # checked before any work
     _outside_inputs(out, "run folder", _splits(data))
     config = apply_config_flags(ctx, make_preset(preset).point_training)
-    views = load_normal_net(normals).net.cfg.num_views
-    dataset = TransparentSceneDataset(data, "train", views=views, augment=False)
+    net_cfg = load_normal_net(normals).net.cfg
+    dataset = TransparentSceneDataset(data, "train", views=net_cfg.num_views, augment=False)
+    size = (dataset.config.width, dataset.config.height)
+    if size != (net_cfg.width, net_cfg.height):  # before the run folder is made
+        raise LookingGlassError(f"the dataset's images are {size[0]}x{size[1]} and the normal net {normals} takes "
+                                f"{net_cfg.width}x{net_cfg.height}: train on data made at the net's size", data)
     run(dataset, out, config, normals, device=device, reporter=Reporter(quiet=quiet),
         threads=threads)
 

@@ -571,7 +571,17 @@ def real_capture_into_photos(root, work):
              work / "photos" / "work", "--quiet"], "work", ("outside the input folder",))
 
 
+def real_circles_of_no_photo(root, work):
+    """A circles line whose name matches no ball photo was ignored, and the ball then "not found"."""
+    copy_real(root, work)
+    (work / "circles.txt").write_text("no_such_photo 40 30 10\n")
+    args = ["envmap-from-ball", "--model", work / "model", "--images", work / "ball", "--circles",
+            work / "circles.txt", "--out", work / "out" / "env.hdr", "--size", 32, 16]
+    return args, "circles.txt", ("no_such_photo", "no photo of that name")
+
+
 REAL_PROBES = [Probe("import-colmap-ior", real_ior("import-colmap", 3.5)),
+               Probe("circles-of-no-photo", real_circles_of_no_photo),
                Probe("ball-map-over-a-photo", real_ball_map_over_a_photo),
                Probe("capture-into-the-photos", real_capture_into_photos),
                Probe("sfm-into-the-photos", lambda root, work: (

@@ -21,7 +21,7 @@ from lookingglass.normals.model import cpu_config as normal_cpu_config
 from lookingglass.normals.train import TrainConfig, train_normals
 from lookingglass.points.features import FEATURE_COLUMNS, NUM_FEATURES, PAPER_FEATURES
 from lookingglass.points.model import PointNetConfig
-from lookingglass.weights import load_normal_net, load_point_net
+from lookingglass.weights import load_normal_net, load_point_net, shipped_weights
 from lookingglass.points.train import PointTrainConfig, prepare_features, train_points
 from lookingglass.presets import preset
 
@@ -177,3 +177,17 @@ def test_cli_train_points(tiny, tmp_path):
     log = _log(tmp_path / "cli")
     assert log[0]["step"] == 2 and log[0]["processes"] == 1
     assert load_point_net(tmp_path / "cli" / "weights.safetensors").net.cfg.num_points == 4096
+
+
+def test_cli_refuses_normals_of_another_image_size(tiny, tmp_path):
+    """The shipped 5-view net (128x96) on this 64x48 data: refused naming both, before the run folder is made
+    (it was found scene by scene after config.json and features/ were written)."""
+    data, _ = tiny
+    shipped = shipped_weights(5)[0]
+    if shipped is None:
+        pytest.skip("no 5-view weights ship in this build")
+    cmd = [sys.executable, "-m", "lookingglass.cli", "train-points", "--data", str(data), "--normals", str(shipped),
+           "--device", "cpu", "--quiet", "--out", str(tmp_path / "run")]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 2 and "64x48" in proc.stderr and "128x96" in proc.stderr and str(shipped) in proc.stderr
+    assert not (tmp_path / "run").exists()

@@ -420,6 +420,12 @@ def envmap_from_ball(model: str | os.PathLike, images: str | os.PathLike, out: s
     check_output_dir(out.parent, True)  # a folder we may write (made if missing)
     colmap = read_model(model)
     user_circles = read_circles(circles) if circles is not None else None
+    if user_circles is not None and Path(images).is_dir():
+        stems = {p.stem for p in Path(images).iterdir() if p.is_file()}
+        unknown = sorted(set(user_circles) - stems)
+        if unknown:  # a typo would otherwise be ignored, and the ball then "not found" in that photo
+            raise LookingGlassError(f"circles given for {', '.join(unknown)}: no photo of that name in {images}",
+                                    circles)
     photos: dict[Path, np.ndarray] = {}
     views = _ball_views(colmap, images, user_circles, config, photos)
 
