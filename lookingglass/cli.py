@@ -414,12 +414,12 @@ def _splits(data: Path) -> list[Path]:
     return [Path(data) / "train", Path(data) / "test"]
 
 
-def _max_scenes(n: int, workers: int = 0) -> int:
-    if n < 0:
-        raise LookingGlassError(f"--max-scenes must be at least 0 (0: all), got {n}")
-    if workers < 0:
-        raise LookingGlassError(f"--workers must be at least 0 (0: one per core), got {workers}")
-    return n
+def _eval_counts(max_scenes: int, workers: int, latent_iterations: int) -> None:
+    """An evaluation's counts: none may be negative (an empty table, or a silent 0)."""
+    for option, value, zero in (("--max-scenes", max_scenes, "all"), ("--workers", workers, "one per core"),
+                                ("--latent-iterations", latent_iterations, "none")):
+        if value < 0:
+            raise LookingGlassError(f"{option} must be at least 0 (0: {zero}), got {value}")
 
 
 def _device(name: str) -> str:
@@ -546,7 +546,7 @@ def eval_normals(
         if not sep or name not in ("basic", "wr", "wr+cv"):
             raise LookingGlassError(f"--weights takes VARIANT=PATH with VARIANT basic, wr or wr+cv, got {item!r}")
         paths[name] = Path(path)
-    _max_scenes(max_scenes, workers)
+    _eval_counts(max_scenes, workers, latent_iterations)
     _outside_inputs(json_out, "file", [*_splits(data), *paths.values()])
     latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
     dataset = TransparentSceneDataset(data, "test", views=views)
@@ -611,7 +611,7 @@ def eval_shapes(
     if weights is None:
         raise LookingGlassError(f"no weights ship for {views} views; pass --weights")
     latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
-    _max_scenes(max_scenes, workers)
+    _eval_counts(max_scenes, workers, latent_iterations)
     dataset = TransparentSceneDataset(data, "test", views=views)
     point_weights = point_weights or shipped_weights(views, "points")[0]
     _outside_inputs(json_out, "file", [*_splits(data), weights, *([point_weights] if point_weights else [])])

@@ -191,6 +191,8 @@ def test_reconstruct_reruns_a_saved_config_and_refuses_bad_values(rendered_scene
     (["train-ior", "--data", "{dir}/none", "--out", "{dir}/r", "--net.bins", 0], "bins must be at least 2"),
     (["train-normals", "--data", "{dir}/none", "--out", "{dir}/r", "--ior", 1e9], "ior must be in [1.0, 3.0]"),
     (["eval-shapes", "--data", "{dir}/none", "--workers", -1], "--workers must be at least 0"),
+    (["eval-normals", "--data", "{dir}/none", "--weights", "wr+cv={file}", "--latent-iterations", -5],
+     "--latent-iterations must be at least 0"),
     (["validate", "--data", "{dir}", "--out", "{dir}/v"], "would write into the input"),
     (["train-points", "--data", "{dir}/none", "--normals", "{file}", "--out", "{dir}/r", "--net.num-points", 0],
      "num_points must be at least 1"),
