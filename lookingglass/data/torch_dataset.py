@@ -112,10 +112,11 @@ class TransparentSceneDataset(Dataset):
         self.view_index = None if views is None or views == self.stored_views else rig_subset(self.stored_views, views)
         self.views = self.stored_views if views is None else int(views)
         folders = sorted(p for p in self.split_dir.glob("scene_*") if p.is_dir())
-        self.scene_dirs = [p for p in folders if is_finished(p)]
+        finished = [is_finished(p) for p in folders]
+        self.scene_dirs = [p for p, done in zip(folders, finished) if done]
         if not self.scene_dirs:
             raise LookingGlassError("no finished scenes (scene_*/meta.json)", self.split_dir)
-        unfinished = [p.name for p in folders if p not in self.scene_dirs]
+        unfinished = [p.name for p, done in zip(folders, finished) if not done]
         if unfinished:  # a table or a training run over what is left would be a silent partial result
             raise LookingGlassError(
                 f"{len(unfinished)} scene(s) unfinished or damaged ({', '.join(unfinished[:3])}"
