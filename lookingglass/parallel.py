@@ -3,9 +3,10 @@ and the evaluations."""
 
 from __future__ import annotations
 
-import functools
+import itertools
 import multiprocessing
 import os
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
@@ -44,17 +45,39 @@ def map_in_processes(func: Callable[[Any], Any], tasks: Iterable, workers: int,
                      initializer: Callable[..., None] | None = None, initargs: tuple = ()) -> Iterator[Any]:
     """Yield func(task) for every task, in the order they finish, from `workers` spawned processes
     with one torch / BLAS / OpenMP thread each; `initializer(*initargs)` runs once per process
-    (e.g. to load networks). func and initializer must be module-level (picklable).
+    (e.g. to load networks). func and initializer must be module-level (picklable). A task's error
+    is raised here; the other workers are then killed, not waited for.
 
-    Spawn, not fork: forking after torch or OpenMP started can hang. The thread variables are
-    set before the children import anything and restored when the generator ends or is closed."""
+    Spawn, not fork: forking after torch or OpenMP started can hang. concurrent.futures, not
+    multiprocessing.Pool: Pool.terminate() can deadlock when a task fails (CPython issues 96995,
+    78178), which hung an evaluation in CI. At most two tasks per worker are queued, so a long
+    task list costs no memory. The thread variables are set before the children import anything
+    and restored when the generator ends or is closed."""
     saved = {v: os.environ.get(v) for v in THREAD_VARIABLES}
     os.environ.update({v: "1" for v in saved})
+    executor = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_init_worker, initargs=(initializer, initargs))
+    finished = False
     try:
-        ctx = multiprocessing.get_context("spawn")
-        with ctx.Pool(workers, initializer=_init_worker, initargs=(initializer, initargs)) as pool:
-            yield from pool.imap_unordered(functools.partial(_run_task, func), tasks, chunksize=1)
+        todo = iter(tasks)
+        running: set = set()
+        while True:
+            for task in itertools.islice(todo, max(0, 2 * workers - len(running))):
+                running.add(executor.submit(_run_task, func, task))
+            if not running:
+                break
+            done, running = wait(running, return_when=FIRST_COMPLETED)
+            for future in done:
+                yield future.result()
+        finished = True
     finally:
+        if finished:
+            executor.shutdown(wait=True)
+        else:  # an error, Ctrl-C or a caller that stopped early: stop the workers now
+            processes = list((getattr(executor, "_processes", None) or {}).values())
+            executor.shutdown(wait=False, cancel_futures=True)
+            for process in processes:  # Python 3.14 has executor.terminate_workers() for this
+                process.kill()
         for v, old in saved.items():
             if old is None:
                 os.environ.pop(v, None)
@@ -67,10 +90,14 @@ def map_scenes(evaluation_class: Callable[..., Any], args: tuple, indices: list[
     """Yield evaluation_class(*args, device=device).scene(i) for every scene index: in this process
     in order when one worker is asked for (or `device` is not the CPU), else from `workers` spawned
     processes (see worker_count; 0: one per core) that each build the object once, in the order the
-    scenes finish. evaluation_class must be module-level (picklable)."""
+    scenes finish. evaluation_class must be module-level (picklable). The object is built here
+    first either way, so bad inputs (weights without their config...) fail once, in this process,
+    before any worker starts."""
     workers = 1 if device != "cpu" else worker_count(workers, len(indices))
+    evaluation = evaluation_class(*args, device=device)
     if workers == 1:
-        return map(evaluation_class(*args, device=device).scene, indices)
+        return map(evaluation.scene, indices)
+    del evaluation
     return map_in_processes(_scene_in_worker, indices, workers, _start_scene_worker, (evaluation_class, args))
 
 
