@@ -472,7 +472,7 @@ def train_points(
     out: Path = typer.Option(..., "--out", help="Run folder: config, feature cache, checkpoints, metrics, weights."),
     preset: str = typer.Option(DEFAULT_PRESET, help=PRESET_HELP),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
-    threads: int = typer.Option(1, help="Torch threads on the CPU (0: half the cores; PNet is fastest on 1)."),
+    threads: int = typer.Option(1, min=0, help="Torch threads on the CPU (0: half the cores; PNet is fastest on 1)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Train the point network on normal-net features (cached in OUT/features; resumes from
