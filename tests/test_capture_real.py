@@ -222,6 +222,12 @@ def test_ball_found_among_decoys(ball_capture, tmp_path):
     with pytest.raises(LookingGlassError, match="circle in the circles file is not on the sphere") as caught:
         envmap_from_ball(root / "model", root / "ball", tmp_path / "env3.hdr", circles=tmp_path / "circles.txt")
     assert "ball_5.exr" in str(caught.value)
+    # a circle far larger than the photo (a typo) is named as such, not as a sphere that does not fit
+    (tmp_path / "circles.txt").write_text("".join(f"{n} {cx} {cy} {1e9 if n == 'ball_2' else r}\n"
+                                                  for n, (cx, cy, r) in truth.items()))
+    with pytest.raises(LookingGlassError, match="does not fit this") as caught:
+        envmap_from_ball(root / "model", root / "ball", tmp_path / "env4.hdr", circles=tmp_path / "circles.txt")
+    assert "ball_2.exr" in str(caught.value) and "1e+09" in str(caught.value)
 
 
 def test_cli_envmap_from_ball_then_import_colmap(ball_capture, glass_capture, tmp_path):

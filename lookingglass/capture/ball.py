@@ -348,6 +348,12 @@ class BallView:
     source: str  # "detected" or "circles file"
 
 
+def _circle_fits(circle: Circle, width: int, height: int) -> bool:
+    """A ball no larger than the photo that shows at least part of it."""
+    cx, cy, r = circle
+    return r <= max(width, height) and -r < cx < width + r and -r < cy < height + r
+
+
 def _ball_views(model, images: Path, circles: dict[str, Circle] | None, config: BallConfig,
                 photos: dict[Path, np.ndarray]) -> list[BallView]:
     """Each ball photo with its circle: the user's (circles file) or, of its `ball_candidates`, the
@@ -369,6 +375,10 @@ def _ball_views(model, images: Path, circles: dict[str, Circle] | None, config: 
         photos[path] = img
         views.append(view)
         user = circles is not None and path.stem in circles
+        if user and not _circle_fits(circles[path.stem], img.shape[1], img.shape[0]):
+            raise LookingGlassError(f"its circle in the circles file ({' '.join(f'{v:g}' for v in circles[path.stem])}) "
+                                    f"does not fit this {img.shape[1]}x{img.shape[0]} photo (its radius must be at "
+                                    "most the photo's size and the circle must overlap it)", path)
         candidates.append([(circles[path.stem], "circles file")] if user
                           else [(c, "detected") for c, _ in ball_candidates(img, config)])
     flat = [(v, c, source) for v, cands in enumerate(candidates) for c, source in cands]
