@@ -6,9 +6,12 @@ from __future__ import annotations
 import itertools
 import multiprocessing
 import os
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any
+
+from .errors import LookingGlassError
 
 # what sizes the thread pools of torch, OpenMP and the BLAS libraries (tests/conftest.py sets them too)
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
@@ -60,15 +63,21 @@ def map_in_processes(func: Callable[[Any], Any], tasks: Iterable, workers: int,
     finished = False
     try:
         todo = iter(tasks)
-        running: set = set()
+        running: dict = {}  # future -> its task
         while True:
             for task in itertools.islice(todo, max(0, 2 * workers - len(running))):
-                running.add(executor.submit(_run_task, func, task))
+                running[executor.submit(_run_task, func, task)] = task
             if not running:
                 break
-            done, running = wait(running, return_when=FIRST_COMPLETED)
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
             for future in done:
-                yield future.result()
+                task = running.pop(future)
+                try:
+                    result = future.result()
+                except BrokenProcessPool:  # killed (out of memory?) or crashed: not the task's own error
+                    raise LookingGlassError(f"a worker process stopped abruptly (killed, out of memory or crashed) "
+                                            f"on task {task!r}; rerun with --workers 1 to see why") from None
+                yield result
         finished = True
     finally:
         if finished:

@@ -25,6 +25,12 @@ def fail_on_three(x: int) -> int:
     return x
 
 
+def die_on_two(x: int) -> int:
+    if x == 2:
+        os._exit(9)  # as if killed (out of memory) or crashed: no exception to send back
+    return x
+
+
 def refuse_to_start() -> None:
     raise LookingGlassError("network config not found beside the weights", "w.json")
 
@@ -57,3 +63,8 @@ def test_a_caller_that_stops_early_leaves_no_worker_behind():
     while multiprocessing.active_children() and time.monotonic() < deadline:  # reaps the killed ones
         time.sleep(0.05)
     assert multiprocessing.active_children() == []
+
+
+def test_a_worker_that_dies_is_a_clear_error_not_a_hang():
+    with pytest.raises(LookingGlassError, match="worker process stopped abruptly .* --workers 1"):
+        list(map_in_processes(die_on_two, range(6), 2))
