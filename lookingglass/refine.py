@@ -121,9 +121,11 @@ class RefineConfig:
     silhouette_width: int = setting(480, "Mask width at and above which the silhouette and fairing weights apply whole; "
                                          "a narrower mask's are scaled by (width / this)^silhouette_width_power and "
                                          "(width / this)^fair_width_power (0: never scaled).", range=(0, None))
-    silhouette_width_power: float = setting(4.27, "How fast the silhouette weight falls below silhouette_width.",
-                                            range=(0, 8))
-    fair_width_power: float = setting(2.96, "How fast the fairing weight falls below silhouette_width.", range=(0, 8))
+    silhouette_width_power: float = setting(3.0, "How fast the silhouette weight falls below silhouette_width (4.27 "
+                                                 "until session 57, with plain fairing).", range=(0, 8))
+    fair_width_power: float = setting(1.0, "How fast the fairing weight falls below silhouette_width (2.96 until "
+                                           "session 57, when the fairing stopped shrinking coarse masks' meshes: "
+                                           "fair_curvature_rings).", range=(0, 8))
     silhouette_views: int = setting(5, "View count at and above which the silhouette weight applies whole; with V "
                                         "fewer views it is multiplied by this / V (0: never scaled).", range=(0, None))
     field_blur_px: float = setting(0.0, "Gaussian blur (sigma, pixels) of the masks' signed-distance fields the "
@@ -140,6 +142,12 @@ class RefineConfig:
                                          "weakens as (thickness / this)^2: a thin part shrinks under it first (0: "
                                          "uniform fairing; 0.2 kept the key on its masks but left lumps on "
                                          "thin procedural parts: docs/history.md).", range=(0, None))
+    fair_curvature_rings: int = setting(8, "Rings of neighbours over which the fairing's target keeps the mesh's own "
+                                           "curvature: each iteration the fairing pulls the Laplacian of the positions "
+                                           "toward its average over that many rings, which irons out lumps without "
+                                           "shrinking a smoothly curved part; on coarse masks only (see "
+                                           "fair_curvature_share; 0: plain fairing, toward 0).",
+                                        range=(0, 64))
     anchor_weight: float = setting(0.05, "Weight of the displacement from the start (keeps each pull local).",
                                    range=(0, None))
     damping: float = setting(0.05, "Weight of the step length (proximal term).", range=(1e-6, None))
@@ -461,8 +469,10 @@ def silhouette_weight(config: RefineConfig, mask_width: int, num_views: int | No
     At 480x360 the masks are worth more: silhouettes 20 and fairing 200 against the 1 and 15 they had
     until 2026-11-26 (val480, 10 views) took CDN-mean 10.26 -> 8.79 (0.84 -> 0.72 x the hull's) and
     the worst view's IoU 0.976 -> 0.984 at the same CD (5 views: CDN-mean 0.90 -> 0.79 x, CD +3%); on
-    the 128x96 test split a factor of 2 already cost CDN-mean, so the power (4.27) brings 128-pixel
-    masks back to 0.071.
+    the 128x96 test split a factor of 2 already cost CDN-mean, so the power (4.27) brought 128-pixel
+    masks back to 0.071; since the fairing keeps the mesh's curvature there (fair_curvature_rings,
+    session 57) it is 3: 0.38 at 128 px (test scenes 0-9: CD 5.77 -> 5.56, CDN-mean 8.69 -> 7.71,
+    worst IoU 0.971 -> 0.979, with the fairing's power 1).
 
     Views: fewer silhouettes hold less of the surface against the fairing, which then shrinks the rims
     off the masks. At 5 views (val480v5: key, bracket, nut, mug) twice the weight raised the worst
@@ -482,9 +492,22 @@ def fair_weight(config: RefineConfig, mask_width: int) -> float:
     (mask_width / silhouette_width)^fair_width_power below silhouette_width. Fairing irons out PNet's
     lumps but shrinks where the silhouettes do not hold the surface, and coarse masks hold it less:
     at 128x96 with the silhouettes at 0.07, 16 cut CDN-mean further but shrank the silhouettes (mean
-    IoU -0.002 to -0.003) and the keep check refused it; 4 is kept there (the power 2.96 gives it).
-    At 480x360 it goes with the silhouette weight, 10 x it (silhouette_weight's docstring)."""
+    IoU -0.002 to -0.003) and the keep check refused it, so 4 was kept there (the power 2.96). Pulled
+    toward the mesh's own curvature instead of 0 on coarse masks (fair_curvature_share), it no
+    longer shrinks them, and 53 (the power 1) irons out more: session 57. At 480x360 it goes with
+    the silhouette weight, 10 x it (silhouette_weight's docstring)."""
     return config.fair_weight * _width_scale(config, mask_width) ** config.fair_width_power
+
+
+def fair_curvature_share(config: RefineConfig, mask_width: int) -> float:
+    """How much of the mesh's own curvature the fairing keeps (fair_curvature_rings) for masks
+    `mask_width` pixels wide: all of it at half silhouette_width and below, none at silhouette_width,
+    linear between. Below, the silhouettes are weak and plain fairing shrinks the rims off the
+    masks; at full width they hold the rims, and plain fairing measured better (val480: the stepped
+    shaft's CD 4.23 -> 5.70 keeping the curvature over 4 rings; docs/history.md, session 57)."""
+    if config.fair_curvature_rings == 0:
+        return 0.0
+    return min(1.0, max(0.0, 2.0 * (1.0 - _width_scale(config, mask_width))))
 
 
 def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.ndarray, cams: Cameras,
@@ -782,6 +805,18 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     history = []
     reference = face_normals(x0, faces)  # what a fold-over is measured against
     solver = _Solver(lap, w_smooth + w_fair * fair_share, c_diag, config.cg_iterations)  # Laplacian rows' weights
+    neighbour_mean = (sp.identity(len(x0), format="csr") - lap).tocsr()
+    curvature_share = fair_curvature_share(config, masks.shape[2])
+
+    def fair_residual(x: np.ndarray) -> np.ndarray:
+        """L x less the fairing's target: 0, or the share of L x averaged over fair_curvature_rings rings."""
+        curvature = lap @ x
+        if curvature_share == 0:
+            return curvature
+        target = curvature
+        for _ in range(config.fair_curvature_rings):
+            target = neighbour_mean @ target
+        return curvature - curvature_share * target
 
     # the silhouette solves (each solves for the minimum of the quadratic terms, so one more after
     # the normal term undoes most of it: ellipsoid CDN-mean 1.8 -> 4.2 degrees, session 42)
@@ -789,7 +824,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         s, g = field_values(fields, cams, x)
         cons = _constraints(x, faces, s, g, cams, weights, config, w_sil)
         history.append({"rim": int(cons.rim.sum()), "outside": int(cons.outside.sum())})
-        rhs = cons.b - lap_t @ (w_smooth * (lap @ (x - x0)) + (w_fair * fair_share)[:, None] * (lap @ x)) \
+        rhs = cons.b - lap_t @ (w_smooth * (lap @ (x - x0)) + (w_fair * fair_share)[:, None] * fair_residual(x)) \
             - config.anchor_weight * (x - x0)
         x = _unfolded(reference, x, x + solver.operator(cons.M)(rhs), faces)
 
@@ -891,6 +926,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         "silhouette_iou_mean": [round(mean_w(iou_in), 4), round(mean_w(iou_out), 4)],
         "view_weights": [round(float(w), 3) for w in weights],
         "silhouette_weight": round(w_sil, 4), "fair_weight": round(fair, 4),
+        "fair_curvature_share": round(curvature_share, 4),
         **({"rerender_error": [round(mean_w(rerendered[k].error), 4) for k in ("input", "refined")],
             "rerender_error_views": {k: [round(float(e), 5) for e in r.error] for k, r in rerendered.items()}}
            if rerendered else {}),

@@ -93,13 +93,41 @@ def test_fairing_weakened_on_thin_parts_keeps_a_rod_on_its_masks():
         warnings.simplefilter("ignore")
         hull = carve_visual_hull(masks, cameras, HullConfig(resolution=64, num_threads=1))
     # the weights this was measured with (before 2026-11-26's): fairing 60 x the silhouettes', which shrinks the rod
+    # and plain fairing (fair_curvature_rings 0): keeping the curvature also holds the rod (worst view 0.978)
     strong = dataclasses.replace(CONFIG, silhouette_weight=1.0, fair_weight=60.0, silhouette_width_power=2.0,
-                                 fair_width_power=1.0)
+                                 fair_width_power=1.0, fair_curvature_rings=0)
     uniform = silhouette_iou(refine_surface(rod, hull, masks, cameras, strong).refined, cameras, masks)
     thin = dataclasses.replace(strong, fair_thickness=0.4)
     weakened = silhouette_iou(refine_surface(rod, hull, masks, cameras, thin).refined, cameras, masks)
     # measured: worst view 0.972 -> 0.980, mean 0.983 -> 0.987
     assert weakened.min() >= uniform.min() + 0.004 and weakened.mean() > uniform.mean(), (uniform, weakened)
+
+
+def test_fairing_that_keeps_the_curvature_does_not_shrink_a_smooth_shape():
+    """Plain fairing pulls the Laplacian of the positions toward 0, which shrinks a curved surface
+    wherever the silhouettes hold it weakly (coarse masks); pulled toward its own average over a few
+    rings, it irons out only what varies faster (fair_curvature_rings). The ellipsoid itself, its
+    128x96 masks, the fairing 25 x the default: plain loses 2.5% of the volume, the other 0.3%
+    (measured)."""
+    from lookingglass.refine import fair_curvature_share
+
+    gt = trimesh.creation.icosphere(subdivisions=5)
+    gt.vertices = gt.vertices * [0.95, 0.6, 0.75] + [0.05, -0.03, 0.02]
+    cameras = paper_rig(10, rng=3, width=128, height=96)
+    masks = object_masks(gt, cameras, samples_per_axis=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        hull = carve_visual_hull(masks, cameras, HullConfig(resolution=64, num_threads=1))
+        heavy = dataclasses.replace(CONFIG, fair_weight=5000.0, fair_width_power=0.0, silhouette_weight=2.0,
+                                    silhouette_width_power=3.0, normal_iterations=0)
+        keeping = dataclasses.replace(heavy, fair_curvature_rings=4)
+        plain = refine_surface(gt, hull, masks, cameras, dataclasses.replace(heavy, fair_curvature_rings=0)).refined
+        kept = refine_surface(gt, hull, masks, cameras, keeping).refined
+    assert fair_curvature_share(dataclasses.replace(heavy, fair_curvature_rings=0), 128) == 0.0
+    assert plain.volume < 0.985 * gt.volume and abs(kept.volume / gt.volume - 1) < 0.005, (plain.volume, kept.volume)
+    assert silhouette_iou(kept, cameras, masks).min() > silhouette_iou(plain, cameras, masks).min() + 0.01
+    # all of it on masks at most half silhouette_width wide, none at silhouette_width and above
+    assert [fair_curvature_share(keeping, w) for w in (128, 240, 360, 480, 1920)] == [1.0, 1.0, 0.5, 0.0, 0.0]
 
 
 def test_shrunken_lumpy_mesh_is_pulled_onto_the_masks(scene):
@@ -133,8 +161,9 @@ def test_a_surface_far_short_of_a_mask_is_pulled_out(scene):
     """The ellipsoid's end cut flat at x = 0.62 falls ~30 px short of some masks (320x240): the rim
     vertices within `band_px` of the boundary pull the contour out, and as it moves the rest come
     within reach. The default band (24 px since the 5-view nut, session 52, whose PNet surface left
-    a crescent of its mask uncovered) gets the worst view from 0.86 to >= 0.94 (measured 0.948);
-    12 px, the old default, stalls below 0.92 (measured 0.903)."""
+    a crescent of its mask uncovered) gets the worst view from 0.86 to >= 0.94 (measured 0.967 with
+    session 57's weights at 320 px, 0.948 before); 12 px, the old default, stalls lower (measured
+    0.956, 0.903 before)."""
     gt, cameras, masks, hull = scene
     cut = gt.copy()
     cut.vertices = np.column_stack([np.minimum(gt.vertices[:, 0], 0.62), gt.vertices[:, 1:]])
@@ -144,7 +173,7 @@ def test_a_surface_far_short_of_a_mask_is_pulled_out(scene):
     worst = {band: silhouette_iou(refine_surface(cut, hull, masks, cameras,
                                                  dataclasses.replace(config, band_px=band)).refined,
                                   cameras, masks).min() for band in (12.0, config.band_px)}
-    assert worst[config.band_px] >= 0.94 and worst[12.0] < 0.92, worst
+    assert worst[config.band_px] >= 0.94 and worst[12.0] < worst[config.band_px] - 0.005, worst
 
 
 def test_a_view_with_a_stray_blob_is_down_weighted_and_named(scene):
@@ -362,7 +391,8 @@ def test_coarse_masks_pull_less():
     """The silhouette weight applies whole from silhouette_width (480) up and falls as a power of the
     width below it (a 128-pixel mask's boundary is 3.75x coarser); the fairing, which those masks then
     hold back less, as a lower power; the defaults give 128-pixel masks the weights measured there
-    (0.071 and 4). Fewer views than silhouette_views pull harder."""
+    (0.38 and 53, with the fairing keeping the curvature: session 57). Fewer views than
+    silhouette_views pull harder."""
     from lookingglass.refine import fair_weight, silhouette_weight
 
     config = RefineConfig(silhouette_weight=2.0, silhouette_width_power=2.0, silhouette_views=10)
@@ -370,8 +400,8 @@ def test_coarse_masks_pull_less():
     assert silhouette_weight(config, 128) == pytest.approx(2.0 * (128 / 480) ** 2, rel=1e-12)
     assert silhouette_weight(config, 240) == pytest.approx(0.5, rel=1e-12)
     assert silhouette_weight(dataclasses.replace(config, silhouette_width=0), 64) == 2.0
-    assert silhouette_weight(RefineConfig(), 128) == pytest.approx(0.0711, rel=0.01)  # measured at 128x96
-    assert fair_weight(RefineConfig(), 128) == pytest.approx(4.0, rel=0.01)
+    assert silhouette_weight(RefineConfig(), 128) == pytest.approx(0.379, rel=0.01)  # measured at 128x96
+    assert fair_weight(RefineConfig(), 128) == pytest.approx(53.3, rel=0.01)
     # fewer than silhouette_views (10) views: the weight times 10 / V; more: unchanged
     assert silhouette_weight(config, 480, 5) == pytest.approx(4.0, rel=1e-12)
     assert silhouette_weight(config, 480, 10) == silhouette_weight(config, 480, 20) == 2.0
