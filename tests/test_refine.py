@@ -33,16 +33,21 @@ from lookingglass.render.tracer import RenderConfig, render_views, trace_two_bou
 CONFIG = RefineConfig(edge_length=0.035)
 
 
-@pytest.fixture(scope="module")
-def scene():
+def ellipsoid_scene(width: int = 320, height: int = 240):
+    """The ellipsoid, a 10-view paper rig at width x height, its masks and their visual hull."""
     gt = trimesh.creation.icosphere(subdivisions=5)
     gt.vertices = gt.vertices * [0.95, 0.6, 0.75] + [0.05, -0.03, 0.02]
-    cameras = paper_rig(10, rng=3, width=320, height=240)
+    cameras = paper_rig(10, rng=3, width=width, height=height)
     masks = object_masks(gt, cameras, samples_per_axis=2)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         hull = carve_visual_hull(masks, cameras, HullConfig(resolution=64, num_threads=1))
     return gt, cameras, masks, hull
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return ellipsoid_scene()
 
 
 def lumpy_shrunken(gt: trimesh.Trimesh, scale: float = 0.97, lumps: float = 0.01) -> trimesh.Trimesh:
@@ -111,13 +116,9 @@ def test_fairing_that_keeps_the_curvature_does_not_shrink_a_smooth_shape():
     (measured)."""
     from lookingglass.refine import fair_curvature_share
 
-    gt = trimesh.creation.icosphere(subdivisions=5)
-    gt.vertices = gt.vertices * [0.95, 0.6, 0.75] + [0.05, -0.03, 0.02]
-    cameras = paper_rig(10, rng=3, width=128, height=96)
-    masks = object_masks(gt, cameras, samples_per_axis=2)
+    gt, cameras, masks, hull = ellipsoid_scene(128, 96)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        hull = carve_visual_hull(masks, cameras, HullConfig(resolution=64, num_threads=1))
         heavy = dataclasses.replace(CONFIG, fair_weight=5000.0, fair_width_power=0.0, silhouette_weight=2.0,
                                     silhouette_width_power=3.0, normal_iterations=0)
         keeping = dataclasses.replace(heavy, fair_curvature_rings=4)
