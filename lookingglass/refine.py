@@ -123,7 +123,7 @@ class RefineConfig:
                                          "(width / this)^fair_width_power (0: never scaled).", range=(0, None))
     silhouette_width_power: float = setting(3.0, "How fast the silhouette weight falls below silhouette_width (4.27 "
                                                  "until session 57, with plain fairing).", range=(0, 8))
-    fair_width_power: float = setting(1.0, "How fast the fairing weight falls below silhouette_width (2.96 until "
+    fair_width_power: float = setting(2.0, "How fast the fairing weight falls below silhouette_width (2.96 until "
                                            "session 57, when the fairing stopped shrinking coarse masks' meshes: "
                                            "fair_curvature_rings).", range=(0, 8))
     silhouette_views: int = setting(5, "View count at and above which the silhouette weight applies whole; with V "
@@ -471,8 +471,7 @@ def silhouette_weight(config: RefineConfig, mask_width: int, num_views: int | No
     the worst view's IoU 0.976 -> 0.984 at the same CD (5 views: CDN-mean 0.90 -> 0.79 x, CD +3%); on
     the 128x96 test split a factor of 2 already cost CDN-mean, so the power (4.27) brought 128-pixel
     masks back to 0.071; since the fairing keeps the mesh's curvature there (fair_curvature_rings,
-    session 57) it is 3: 0.38 at 128 px (test scenes 0-9: CD 5.77 -> 5.56, CDN-mean 8.69 -> 7.71,
-    worst IoU 0.971 -> 0.979, with the fairing's power 1).
+    session 57) it is 3: 0.38 at 128 px (docs/results.md, the test split's Table 2/3).
 
     Views: fewer silhouettes hold less of the surface against the fairing, which then shrinks the rims
     off the masks. At 5 views (val480v5: key, bracket, nut, mug) twice the weight raised the worst
@@ -494,8 +493,9 @@ def fair_weight(config: RefineConfig, mask_width: int) -> float:
     at 128x96 with the silhouettes at 0.07, 16 cut CDN-mean further but shrank the silhouettes (mean
     IoU -0.002 to -0.003) and the keep check refused it, so 4 was kept there (the power 2.96). Pulled
     toward the mesh's own curvature instead of 0 on coarse masks (fair_curvature_share), it no
-    longer shrinks them, and 53 (the power 1) irons out more: session 57. At 480x360 it goes with
-    the silhouette weight, 10 x it (silhouette_weight's docstring)."""
+    longer shrinks them, and 14 (the power 2) irons out more: session 57 (53, the power 1, filled
+    test scene 25's cavity: CD 12.2 -> 16.9). At 480x360 it goes with the silhouette weight, 10 x it
+    (silhouette_weight's docstring)."""
     return config.fair_weight * _width_scale(config, mask_width) ** config.fair_width_power
 
 

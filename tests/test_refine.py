@@ -162,9 +162,9 @@ def test_a_surface_far_short_of_a_mask_is_pulled_out(scene):
     """The ellipsoid's end cut flat at x = 0.62 falls ~30 px short of some masks (320x240): the rim
     vertices within `band_px` of the boundary pull the contour out, and as it moves the rest come
     within reach. The default band (24 px since the 5-view nut, session 52, whose PNet surface left
-    a crescent of its mask uncovered) gets the worst view from 0.86 to >= 0.94 (measured 0.967 with
-    session 57's weights at 320 px, 0.948 before); 12 px, the old default, stalls lower (measured
-    0.956, 0.903 before)."""
+    a crescent of its mask uncovered) gets the worst view from 0.86 to >= 0.94 (measured 0.948 with
+    session 57's weights at 320 px, and before); 12 px, the old default, stalls lower (measured
+    0.927, 0.903 before)."""
     gt, cameras, masks, hull = scene
     cut = gt.copy()
     cut.vertices = np.column_stack([np.minimum(gt.vertices[:, 0], 0.62), gt.vertices[:, 1:]])
@@ -174,7 +174,7 @@ def test_a_surface_far_short_of_a_mask_is_pulled_out(scene):
     worst = {band: silhouette_iou(refine_surface(cut, hull, masks, cameras,
                                                  dataclasses.replace(config, band_px=band)).refined,
                                   cameras, masks).min() for band in (12.0, config.band_px)}
-    assert worst[config.band_px] >= 0.94 and worst[12.0] < worst[config.band_px] - 0.005, worst
+    assert worst[config.band_px] >= 0.94 and worst[12.0] < worst[config.band_px] - 0.01, worst
 
 
 def test_a_view_with_a_stray_blob_is_down_weighted_and_named(scene):
@@ -392,7 +392,7 @@ def test_coarse_masks_pull_less():
     """The silhouette weight applies whole from silhouette_width (480) up and falls as a power of the
     width below it (a 128-pixel mask's boundary is 3.75x coarser); the fairing, which those masks then
     hold back less, as a lower power; the defaults give 128-pixel masks the weights measured there
-    (0.38 and 53, with the fairing keeping the curvature: session 57). Fewer views than
+    (0.38 and 14, with the fairing keeping the curvature: session 57). Fewer views than
     silhouette_views pull harder."""
     from lookingglass.refine import fair_weight, silhouette_weight
 
@@ -402,7 +402,7 @@ def test_coarse_masks_pull_less():
     assert silhouette_weight(config, 240) == pytest.approx(0.5, rel=1e-12)
     assert silhouette_weight(dataclasses.replace(config, silhouette_width=0), 64) == 2.0
     assert silhouette_weight(RefineConfig(), 128) == pytest.approx(0.379, rel=0.01)  # measured at 128x96
-    assert fair_weight(RefineConfig(), 128) == pytest.approx(53.3, rel=0.01)
+    assert fair_weight(RefineConfig(), 128) == pytest.approx(14.2, rel=0.01)
     # fewer than silhouette_views (10) views: the weight times 10 / V; more: unchanged
     assert silhouette_weight(config, 480, 5) == pytest.approx(4.0, rel=1e-12)
     assert silhouette_weight(config, 480, 10) == silhouette_weight(config, 480, 20) == 2.0
