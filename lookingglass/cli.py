@@ -472,7 +472,7 @@ def train_points(
     out: Path = typer.Option(..., "--out", help="Run folder: config, feature cache, checkpoints, metrics, weights."),
     preset: str = typer.Option(DEFAULT_PRESET, help=PRESET_HELP),
     device: str = typer.Option("auto", help="cpu, cuda, cuda:N or auto."),
-    threads: int = typer.Option(1, min=0, help="Torch threads on the CPU (0: half the cores; PNet is fastest on 1)."),
+    threads: int = typer.Option(1, help="Torch threads on the CPU (0: half the cores; PNet is fastest on 1)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Train the point network on normal-net features (cached in OUT/features; resumes from
@@ -484,6 +484,8 @@ def train_points(
     from .weights import load_normal_net
 
     device = _device(device)  # checked before any work
+    if threads < 0:  # torch would read it as "leave my setting alone"
+        raise LookingGlassError(f"--threads must be at least 0 (0: half the cores), got {threads}")
     _outside_inputs(out, "run folder", _splits(data))
     config = apply_config_flags(ctx, make_preset(preset).point_training)
     net_cfg = load_normal_net(normals).net.cfg

@@ -30,7 +30,8 @@ def _init_worker(initializer: Callable[..., None] | None, initargs: tuple) -> No
         try:
             initializer(*initargs)
         except Exception as error:  # noqa: BLE001 - re-raised by every task, so it reaches the caller
-            # A pool whose initializer raises prints the traceback and respawns the worker forever.
+            # Raised here, it would break the pool with a bare BrokenProcessPool (multiprocessing.Pool:
+            # respawn the worker forever); kept, every task re-raises it with its message.
             global _INIT_ERROR
             _INIT_ERROR = error
 
@@ -58,31 +59,30 @@ def map_in_processes(func: Callable[[Any], Any], tasks: Iterable, workers: int,
     and restored when the generator ends or is closed."""
     saved = {v: os.environ.get(v) for v in THREAD_VARIABLES}
     os.environ.update({v: "1" for v in saved})
-    executor = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_init_worker, initargs=(initializer, initargs))
+    executor = None
     finished = False
     try:
+        executor = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                       initializer=_init_worker, initargs=(initializer, initargs))
         todo = iter(tasks)
-        running: dict = {}  # future -> its task
-        while True:
-            for task in itertools.islice(todo, max(0, 2 * workers - len(running))):
-                running[executor.submit(_run_task, func, task)] = task
-            if not running:
-                break
-            done, _ = wait(running, return_when=FIRST_COMPLETED)
-            for future in done:
-                task = running.pop(future)
-                try:
-                    result = future.result()
-                except BrokenProcessPool:  # killed (out of memory?) or crashed: not the task's own error
-                    raise LookingGlassError(f"a worker process stopped abruptly (killed, out of memory or crashed) "
-                                            f"on task {task!r}; rerun with --workers 1 to see why") from None
-                yield result
+        running: set = set()
+        try:
+            while True:
+                for task in itertools.islice(todo, max(0, 2 * workers - len(running))):
+                    running.add(executor.submit(_run_task, func, task))
+                if not running:
+                    break
+                done, running = wait(running, return_when=FIRST_COMPLETED)
+                for future in done:
+                    yield future.result()
+        except BrokenProcessPool:  # killed (out of memory?) or crashed: not a task's own error
+            raise LookingGlassError("a worker process stopped abruptly (killed, out of memory or crashed); rerun "
+                                    "with --workers 1 to see why") from None
         finished = True
     finally:
-        if finished:
+        if executor is not None and finished:
             executor.shutdown(wait=True)
-        else:  # an error, Ctrl-C or a caller that stopped early: stop the workers now
+        elif executor is not None:  # an error, Ctrl-C or a caller that stopped early: stop the workers now
             processes = list((getattr(executor, "_processes", None) or {}).values())
             executor.shutdown(wait=False, cancel_futures=True)
             for process in processes:  # Python 3.14 has executor.terminate_workers() for this

@@ -120,7 +120,9 @@ class RefineConfig:
                                             "pixels or wider.", range=(0, None))
     silhouette_width: int = setting(480, "Mask width at and above which the silhouette and fairing weights apply whole; "
                                          "a narrower mask's are scaled by (width / this)^silhouette_width_power and "
-                                         "(width / this)^fair_width_power (0: never scaled).", range=(0, None))
+                                         "(width / this)^fair_width_power, and its fairing keeps the mesh's curvature "
+                                         "(all of it from half this width down: fair_curvature_share) (0: never "
+                                         "scaled).", range=(0, None))
     silhouette_width_power: float = setting(3.0, "How fast the silhouette weight falls below silhouette_width (4.27 "
                                                  "until session 57, with plain fairing).", range=(0, 8))
     fair_width_power: float = setting(2.0, "How fast the fairing weight falls below silhouette_width (2.96 until "
@@ -135,18 +137,20 @@ class RefineConfig:
                                         "0.973; docs/history.md, session 49).", range=(0, 4))
     smooth_weight: float = setting(1.0, "Weight of the Laplacian of the displacement (at edge 0.015).",
                                    range=(0, None))
-    fair_weight: float = setting(200.0, "Weight of the Laplacian of the positions (fairing; shrinks; at edge 0.015 and "
+    fair_weight: float = setting(200.0, "Weight of the Laplacian of the positions (fairing; shrinks, but see "
+                                       "fair_curvature_rings; at edge 0.015 and "
                                        "masks silhouette_width wide, scaled below as fair_width_power says).",
                                  range=(0, None))
     fair_thickness: float = setting(0.0, "Local thickness (shape diameter, hull-normalized frame) below which the fairing "
                                          "weakens as (thickness / this)^2: a thin part shrinks under it first (0: "
                                          "uniform fairing; 0.2 kept the key on its masks but left lumps on "
                                          "thin procedural parts: docs/history.md).", range=(0, None))
-    fair_curvature_rings: int = setting(8, "Rings of neighbours over which the fairing's target keeps the mesh's own "
-                                           "curvature: each iteration the fairing pulls the Laplacian of the positions "
-                                           "toward its average over that many rings, which irons out lumps without "
-                                           "shrinking a smoothly curved part; on coarse masks only (see "
-                                           "fair_curvature_share; 0: plain fairing, toward 0).",
+    fair_curvature_rings: int = setting(8, "Neighbour-averaging steps that make the fairing's target: each iteration "
+                                           "the fairing pulls the Laplacian of the positions toward itself averaged "
+                                           "this many times over each vertex's neighbours (a random walk of this "
+                                           "many edges, ~sqrt of it wide), which irons out lumps without shrinking a "
+                                           "smoothly curved part; on coarse masks only (see fair_curvature_share; "
+                                           "0: plain fairing, toward 0).",
                                         range=(0, 64))
     anchor_weight: float = setting(0.05, "Weight of the displacement from the start (keeps each pull local).",
                                    range=(0, None))
@@ -809,7 +813,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     curvature_share = fair_curvature_share(config, masks.shape[2])
 
     def fair_residual(x: np.ndarray) -> np.ndarray:
-        """L x less the fairing's target: 0, or the share of L x averaged over fair_curvature_rings rings."""
+        """L x less the fairing's target: 0, or the share of L x averaged fair_curvature_rings times over
+        each vertex's neighbours."""
         curvature = lap @ x
         if curvature_share == 0:
             return curvature

@@ -197,7 +197,7 @@ def test_reconstruct_reruns_a_saved_config_and_refuses_bad_values(rendered_scene
     (["train-points", "--data", "{dir}/none", "--normals", "{file}", "--out", "{dir}/r", "--net.num-points", 0],
      "num_points must be at least 1"),
     (["train-points", "--data", "{dir}/none", "--normals", "{file}", "--out", "{dir}/r", "--threads", -1],
-     "greater than or equal to 0"),
+     "--threads must be at least 0"),
     (["generate", "--out", "{dir}/g", "--scenes", 1_000_000_000, "--views", 5], "--scenes must be from 1 to"),
     (["generate-validation", "--out", "{file}", "--shapes", "nut", "--size", 32, 24], "exists and is not a folder"),
     (["generate-validation", "--out", "{dir}/v", "--shapes", "nut", "--size", 32, 24, "--samples-per-axis", 0],

@@ -1,7 +1,8 @@
 """lookingglass.parallel: results from worker processes, and a failing task or initializer raised in
-the caller at once, without waiting for the other workers (multiprocessing.Pool's terminate could
-deadlock there, which hung an evaluation in CI)."""
+the caller at once, the other workers killed rather than waited for (multiprocessing.Pool's terminate
+could deadlock there, which hung an evaluation in CI)."""
 
+import multiprocessing
 import os
 import time
 
@@ -25,6 +26,12 @@ def fail_on_three(x: int) -> int:
     return x
 
 
+def sleep_after_the_first(x: int) -> int:
+    if x > 0:
+        time.sleep(SLOW)
+    return x
+
+
 def die_on_two(x: int) -> int:
     if x == 2:
         os._exit(9)  # as if killed (out of memory) or crashed: no exception to send back
@@ -35,36 +42,44 @@ def refuse_to_start() -> None:
     raise LookingGlassError("network config not found beside the weights", "w.json")
 
 
-def test_every_result_comes_back_and_the_thread_settings_are_restored():
+def no_workers_left(timeout: float = 10.0) -> bool:
+    """Whether every child process has ended (active_children reaps the killed ones) within timeout."""
+    deadline = time.monotonic() + timeout
+    while multiprocessing.active_children() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return not multiprocessing.active_children()
+
+
+def test_every_result_comes_back_and_the_thread_settings_are_restored(monkeypatch):
+    monkeypatch.setenv(THREAD_VARIABLES[0], "3")
+    monkeypatch.delenv(THREAD_VARIABLES[1], raising=False)
     before = {v: os.environ.get(v) for v in THREAD_VARIABLES}
     assert sorted(map_in_processes(square, range(25), 2)) == [x * x for x in range(25)]
     assert {v: os.environ.get(v) for v in THREAD_VARIABLES} == before
 
 
-def test_a_failing_task_is_raised_without_waiting_for_the_others():
+def test_a_failing_task_is_raised_and_the_other_workers_killed():
     start = time.monotonic()
     with pytest.raises(LookingGlassError, match="scene_0003: task three failed"):
         list(map_in_processes(fail_on_three, range(10), 2))
-    assert time.monotonic() - start < SLOW / 2  # the sleeping workers were killed, not joined
+    assert no_workers_left() and time.monotonic() - start < SLOW / 2  # the sleeping workers were killed
 
 
 def test_a_failing_initializer_is_raised_once():
     with pytest.raises(LookingGlassError, match="w.json: network config not found"):
         list(map_in_processes(square, range(6), 2, refuse_to_start))
+    assert no_workers_left()
 
 
 def test_a_caller_that_stops_early_leaves_no_worker_behind():
-    import multiprocessing
-
-    results = map_in_processes(square, range(40), 2)
-    assert next(results) in {x * x for x in range(40)}
-    results.close()
-    deadline = time.monotonic() + 10
-    while multiprocessing.active_children() and time.monotonic() < deadline:  # reaps the killed ones
-        time.sleep(0.05)
-    assert multiprocessing.active_children() == []
+    start = time.monotonic()
+    results = map_in_processes(sleep_after_the_first, range(40), 2)
+    assert next(results) == 0
+    results.close()  # the other worker is asleep in its task: killed, not joined
+    assert no_workers_left() and time.monotonic() - start < SLOW / 2
 
 
 def test_a_worker_that_dies_is_a_clear_error_not_a_hang():
     with pytest.raises(LookingGlassError, match="worker process stopped abruptly .* --workers 1"):
         list(map_in_processes(die_on_two, range(6), 2))
+    assert no_workers_left()

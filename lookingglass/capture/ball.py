@@ -349,9 +349,11 @@ class BallView:
 
 
 def _circle_fits(circle: Circle, width: int, height: int) -> bool:
-    """A ball no larger than the photo that shows at least part of it."""
+    """A ball no larger than the photo that shows at least part of it (its centre nearer the photo
+    than its radius)."""
     cx, cy, r = circle
-    return r <= max(width, height) and -r < cx < width + r and -r < cy < height + r
+    outside = math.hypot(max(0.0, -cx, cx - width), max(0.0, -cy, cy - height))
+    return r <= max(width, height) and outside < r
 
 
 def _ball_views(model, images: Path, circles: dict[str, Circle] | None, config: BallConfig,
