@@ -809,8 +809,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     history = []
     reference = face_normals(x0, faces)  # what a fold-over is measured against
     solver = _Solver(lap, w_smooth + w_fair * fair_share, c_diag, config.cg_iterations)  # Laplacian rows' weights
-    neighbour_mean = (sp.identity(len(x0), format="csr") - lap).tocsr()
     curvature_share = fair_curvature_share(config, masks.shape[2])
+    neighbour_mean = (sp.identity(len(x0), format="csr") - lap).tocsr() if curvature_share else None
 
     def fair_residual(x: np.ndarray) -> np.ndarray:
         """L x less the fairing's target: 0, or the share of L x averaged fair_curvature_rings times over
