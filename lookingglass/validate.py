@@ -35,9 +35,11 @@ from .weights import WEIGHTS_DIR
 SHAPE_METRICS = ("cd", "metro", "cdn_mean", "cdn_med", "rerender")
 
 
-def normal_errors(result_dir: Path, capture, gt, hull) -> dict:
+def normal_errors(result_dir: Path, capture, gt, hull, mesh=None) -> dict:
     """Median angle errors of the hull's and the predicted N1 and N2 against the ground truth's,
-    at the network's resolution (OUT/normals/view_XX.npz), and the two render errors."""
+    at the network's resolution (OUT/normals/view_XX.npz), and the two render errors; with MESH
+    (the final mesh), its own traced N1 and N2 too: the normals a user gets, where the prediction
+    is what the normal net made of the hull."""
     views = sorted((result_dir / "normals").glob("view_*.npz"))
     if not views:
         return {}
@@ -51,8 +53,12 @@ def normal_errors(result_dir: Path, capture, gt, hull) -> dict:
     mask = torch.as_tensor(np.stack([m["mask"] for m in maps])) & truth.mask
     two = mask & truth.valid
     out = {}
-    for name, n1, n2 in (("hull", ours.normal1, ours.normal2),
-                         ("pred", np.stack([m["n1"] for m in maps]), np.stack([m["n2"] for m in maps]))):
+    found = [("hull", ours.normal1, ours.normal2),
+             ("pred", np.stack([m["n1"] for m in maps]), np.stack([m["n2"] for m in maps]))]
+    if mesh is not None:
+        final = trace_two_bounce(mesh, cams, ior=capture.ior)
+        found.append(("mesh", final.normal1, final.normal2))
+    for name, n1, n2 in found:
         out[f"n1_median_{name}"] = normal_angle_errors(n1, truth.normal1, mask)["median"]
         out[f"n2_median_{name}"] = normal_angle_errors(n2, truth.normal2, two)["median"]
     report = json.loads((result_dir / "report.json").read_text())
@@ -108,10 +114,10 @@ def evaluate_validation_set(root, out, config: PipelineConfig | None = None, nam
         scene = root / name / "scene"
         _reconstructed(scene, out / name, config, Reporter(quiet=True))
         gt = load_mesh(root / name / "ground_truth.ply")
-        hull = load_mesh(out / name / "visual_hull.ply")
+        hull, mesh = load_mesh(out / name / "visual_hull.ply"), load_mesh(out / name / "mesh.ply")
         report = json.loads((out / name / "report.json").read_text())
         record = {"name": name, "family": index["shapes"].get(name, "?"), "mesh_from": report["mesh_from"],
-                  "hull": shape_metrics(hull, gt), "mesh": shape_metrics(load_mesh(out / name / "mesh.ply"), gt),
+                  "hull": shape_metrics(hull, gt), "mesh": shape_metrics(mesh, gt),
                   "seconds": report["total_seconds"]}
         if (out / name / "surface.ply").exists():  # the refine stage ran: its input scored too
             record["surface"] = shape_metrics(load_mesh(out / name / "surface.ply"), gt)
@@ -129,7 +135,7 @@ def evaluate_validation_set(root, out, config: PipelineConfig | None = None, nam
                              "seconds": found["seconds"],
                              **({"learned": found["learned"]["value"]} if "learned" in found else {})}
         with torch.inference_mode():
-            record.update(normal_errors(out / name, capture, gt, hull))
+            record.update(normal_errors(out / name, capture, gt, hull, mesh))
         # how well each mesh explains the photos (render/compare.py); the refine stage has already
         # re-rendered its input (the surface) and its result, at the same seed (and, by default, width
         # and samples)
@@ -161,8 +167,8 @@ def family_means(records: list[dict]) -> dict:
     for family, rs in groups.items():
         kinds = ("hull", "surface", "mesh") if all("surface" in r for r in rs) else ("hull", "mesh")
         row = {f"{k}_{m}": float(np.mean([r[k][m] for r in rs])) for k in kinds for m in SHAPE_METRICS}
-        for key in ("n1_median_hull", "n1_median_pred", "n2_median_hull", "n2_median_pred", "render_error_hull",
-                    "render_error_pred"):
+        for key in ("n1_median_hull", "n1_median_pred", "n1_median_mesh", "n2_median_hull", "n2_median_pred",
+                    "n2_median_mesh", "render_error_hull", "render_error_pred"):
             values = [r[key] for r in rs if r.get(key) is not None]
             if values:
                 row[key] = float(np.mean(values))
@@ -177,20 +183,23 @@ def family_means(records: list[dict]) -> dict:
 
 def markdown_table(result: dict) -> str:
     """One row per scene and per family: the hull's figure, the result's, and their ratio."""
-    def pair(h, m):
-        return f"{h:.2f} / {m:.2f} ({m / h:.2f}x)" if h and m is not None else ""
+    def pair(h, *ms):
+        if not h or any(m is None for m in ms):
+            return ""
+        return f"{h:.2f} / " + " / ".join(f"{m:.2f} ({m / h:.2f}x)" for m in ms)
 
-    lines = ["| scene | family | CD hull / mesh | CDN-mean hull / mesh | Metro hull / mesh | N1 median hull / pred | "
-             "N2 median hull / pred |", "|---|---|---|---|---|---|---|"]
+    def normals(row: dict, which: str) -> str:  # hull / prediction [/ final mesh]
+        return pair(*(row.get(f"{which}_median_{k}") for k in ("hull", "pred", "mesh") if f"{which}_median_{k}" in row))
+
+    lines = ["| scene | family | CD hull / mesh | CDN-mean hull / mesh | Metro hull / mesh | N1 median hull / pred / "
+             "mesh | N2 median hull / pred / mesh |", "|---|---|---|---|---|---|---|"]
     rows = [(r["name"], r["family"], r["hull"]["cd"], r["mesh"]["cd"], r["hull"]["cdn_mean"], r["mesh"]["cdn_mean"],
-             r["hull"]["metro"], r["mesh"]["metro"], r.get("n1_median_hull"), r.get("n1_median_pred"),
-             r.get("n2_median_hull"), r.get("n2_median_pred")) for r in result["scenes"]]
+             r["hull"]["metro"], r["mesh"]["metro"], r) for r in result["scenes"]]
     rows += [(f"**{f}**", f"{m['scenes']} scenes", m["hull_cd"], m["mesh_cd"], m["hull_cdn_mean"], m["mesh_cdn_mean"],
-              m["hull_metro"], m["mesh_metro"], m.get("n1_median_hull"), m.get("n1_median_pred"),
-              m.get("n2_median_hull"), m.get("n2_median_pred")) for f, m in result["families"].items()]
-    for name, family, *v in rows:
+              m["hull_metro"], m["mesh_metro"], m) for f, m in result["families"].items()]
+    for name, family, *v, row in rows:
         lines.append(f"| {name} | {family} | {pair(v[0], v[1])} | {pair(v[2], v[3])} | {pair(v[4], v[5])} | "
-                     f"{pair(v[6], v[7]) if v[6] is not None else ''} | {pair(v[8], v[9]) if v[8] is not None else ''} |")
+                     f"{normals(row, 'n1')} | {normals(row, 'n2')} |")
     if all("surface" in r for r in result["scenes"]) and result["scenes"]:
         lines += ["", "| scene | CD hull / surface / refined | CDN-mean hull / surface / refined | re-rendering error "
                   "hull / surface / refined | worst IoU surface / kept | kept |", "|---|---|---|---|---|---|"]

@@ -59,8 +59,13 @@ def test_reconstruct_scored_against_the_hull(tmp_path):
     hull = shape_metrics(load_mesh(tmp_path / "out" / "pebble" / "visual_hull.ply"), gt)
     assert record["hull"]["cd"] == pytest.approx(hull["cd"], rel=1e-9) and record["mesh_from"] == "visual_hull"
     assert 0 < record["n1_median_hull"] < 20 and 0 < record["n1_median_pred"] < 45
+    # the final mesh's own normals, traced: here (stopped after the normals) the mesh is the hull
+    for which in ("n1", "n2"):
+        assert record[f"{which}_median_mesh"] == pytest.approx(record[f"{which}_median_hull"], rel=1e-6)
     assert record["render_error_hull"] > 0 and record["render_error_pred"] > 0
     assert result["families"]["blob"]["scenes"] == 1 and "pebble" in markdown_table(result)
+    row = next(line for line in markdown_table(result).splitlines() if line.startswith("| pebble |"))
+    assert row.split(" | ")[5].count("/") == 2  # N1: hull / prediction / mesh
     page = (tmp_path / "out" / "pebble" / "report.html").read_text()  # with its ground truth
     assert "ground truth normals" in page and "network normals" in page and "CDN-mean" in page
     saved = json.loads((tmp_path / "out" / "validation.json").read_text())
