@@ -694,7 +694,8 @@ def validate(
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Run `reconstruct` on every validation scene and print, per scene and family, the hull's
-    figures beside the result's (CD, CDN-mean, Metro, N1/N2 medians) as markdown."""
+    figures beside the result's (CD, CDN-mean, Metro; N1/N2 medians of the hull, the normal net's
+    prediction and the final mesh) as markdown."""
     from .presets import preset as make_preset
     from .progress import Reporter
     from .validate import evaluate_validation_set, markdown_table
