@@ -39,7 +39,8 @@ def normal_errors(result_dir: Path, capture, gt, hull, mesh=None) -> dict:
     """Median angle errors of the hull's and the predicted N1 and N2 against the ground truth's,
     at the network's resolution (OUT/normals/view_XX.npz), and the two render errors; with MESH
     (the final mesh), its own traced N1 and N2 too: the normals a user gets, where the prediction
-    is what the normal net made of the hull."""
+    is what the normal net made of the hull. All over the same pixels (the network's mask and the
+    truth's): a pixel a mesh misses counts as a 90-degree error."""
     views = sorted((result_dir / "normals").glob("view_*.npz"))
     if not views:
         return {}
@@ -183,13 +184,14 @@ def family_means(records: list[dict]) -> dict:
 
 def markdown_table(result: dict) -> str:
     """One row per scene and per family: the hull's figure, the result's, and their ratio."""
-    def pair(h, *ms):
-        if not h or any(m is None for m in ms):
-            return ""
-        return f"{h:.2f} / " + " / ".join(f"{m:.2f} ({m / h:.2f}x)" for m in ms)
+    def pair(h, m):
+        return f"{h:.2f} / {m:.2f} ({m / h:.2f}x)" if h and m is not None else ""
 
-    def normals(row: dict, which: str) -> str:  # hull / prediction [/ final mesh]
-        return pair(*(row.get(f"{which}_median_{k}") for k in ("hull", "pred", "mesh") if f"{which}_median_{k}" in row))
+    def normals(row: dict, which: str) -> str:  # hull / prediction / final mesh ("-": not measured)
+        hull, *rest = (row.get(f"{which}_median_{k}") for k in ("hull", "pred", "mesh"))
+        if not hull:
+            return ""
+        return f"{hull:.2f} / " + " / ".join("-" if m is None else f"{m:.2f} ({m / hull:.2f}x)" for m in rest)
 
     lines = ["| scene | family | CD hull / mesh | CDN-mean hull / mesh | Metro hull / mesh | N1 median hull / pred / "
              "mesh | N2 median hull / pred / mesh |", "|---|---|---|---|---|---|---|"]

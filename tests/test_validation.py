@@ -6,14 +6,16 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
+from lookingglass.capture.scene import load_capture
 from lookingglass.config import PipelineConfig
 from lookingglass.data.validation import EDGE, SHAPES, generate_validation_set, validation_shape
 from lookingglass.errors import LookingGlassError
 from lookingglass.metrics import load_mesh, shape_metrics
 from lookingglass.normals.latent import LatentOptConfig
 from lookingglass.normals.stage import NormalStageConfig
-from lookingglass.validate import evaluate_validation_set, markdown_table
+from lookingglass.validate import evaluate_validation_set, markdown_table, normal_errors
 from lookingglass.weights import shipped_weights
 
 GENUS = {"bracket": 1, "nut": 1, "mug": 1, "key": 1}  # the others are genus 0
@@ -62,6 +64,12 @@ def test_reconstruct_scored_against_the_hull(tmp_path):
     # the final mesh's own normals, traced: here (stopped after the normals) the mesh is the hull
     for which in ("n1", "n2"):
         assert record[f"{which}_median_mesh"] == pytest.approx(record[f"{which}_median_hull"], rel=1e-6)
+    # and it is the mesh given that is traced: the ground truth as the mesh scores ~0
+    capture = load_capture(tmp_path / "set" / "pebble" / "scene")
+    hull_mesh = load_mesh(tmp_path / "out" / "pebble" / "visual_hull.ply")
+    with torch.inference_mode():
+        exact = normal_errors(tmp_path / "out" / "pebble", capture, gt, hull_mesh, mesh=gt)
+    assert exact["n1_median_mesh"] < 0.05 and exact["n2_median_mesh"] < 0.05 and exact["n1_median_hull"] > 1
     assert record["render_error_hull"] > 0 and record["render_error_pred"] > 0
     assert result["families"]["blob"]["scenes"] == 1 and "pebble" in markdown_table(result)
     row = next(line for line in markdown_table(result).splitlines() if line.startswith("| pebble |"))
