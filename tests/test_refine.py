@@ -25,7 +25,7 @@ from lookingglass.normals.stage import second_pass
 from lookingglass.physics.constants import IOR_GLASS
 from lookingglass.physics.environment import EnvironmentMap
 from lookingglass.refine import (RefineConfig, carve_by_hull, local_thickness, refine_surface, silhouette_iou,
-                                 uniform_laplacian)
+                                 uniform_laplacian, worse_measures)
 from lookingglass.render.raycast import object_masks
 from lookingglass.render.tracer import RenderConfig, render_views, trace_two_bounce
 
@@ -275,6 +275,28 @@ def test_an_input_made_worse_is_rejected(scene):
     result = refine_surface(gt, hull, masks, cameras, coarse)
     assert result.report["kept"] == "input" and result.mesh is gt
     assert "silhouette IoU" in result.report["kept_why"]
+
+
+def test_the_keep_check_weighs_a_small_iou_loss_against_the_photos():
+    """The mean IoU may fall by up to keep_tolerance only where the refined mesh re-renders the
+    photos better (by more than the re-rendering's own 1% spread); otherwise it is strict, and the
+    worst view, the roughness and fold-overs are checked as before."""
+    tol, w = 0.002, np.ones(4)
+    iou_in = np.array([0.990, 0.992, 0.994, 0.996])
+    iou_out = iou_in - 0.001  # every view 0.001 lower: within tol
+    rough = (1.0, 0.5)
+    assert worse_measures(iou_in, iou_in, w, rough, 0, None, tol) == []
+    [why] = worse_measures(iou_in, iou_out, w, rough, 0, None, tol)  # no photos: strict
+    assert why.startswith("mean silhouette IoU")
+    assert worse_measures(iou_in, iou_out, w, rough, 0, (0.10, 0.08), tol) == []  # photos better: kept
+    assert worse_measures(iou_in, iou_out, w, rough, 0, (0.10, 0.0995), tol)  # within the 1% spread: strict
+    assert worse_measures(iou_in, iou_in - 0.003, w, rough, 0, (0.10, 0.08), tol)  # beyond tol
+    both = worse_measures(iou_in, iou_out, w, rough, 0, (0.10, 0.102), tol)  # photos worse by 2%
+    assert [b.split(" ")[0] for b in both] == ["re-rendering", "mean"], both
+    # a zero-weight view counts in neither the mean nor the worst view
+    down = np.array([1.0, 1.0, 1.0, 0.0])
+    assert worse_measures(iou_in, np.append(iou_in[:3], 0.5), down, rough, 0, None, tol) == []
+    assert worse_measures(iou_in, iou_in, w, (1.0, 1.01), 2, None, tol) == ["roughness 1 -> 1.01", "2 fold-over(s)"]
 
 
 def test_the_stage_is_configured():

@@ -113,7 +113,10 @@ class _ShapeEvaluation:
                     hull, gt, maps, self.surface, self.point_net, lambda m, g: self._scored(m, g, capture))
                 if mesh is not None and self.refine is not None:  # as reconstruct's refine stage, on that surface
                     refined = refine_stage(capture, hull, mesh, self.weights, self.refine, self.device)
-                    record["refined"] = {**self._scored(refined.mesh, gt, capture), "kept": refined.report["kept"]}
+                    record["refined"] = {**self._scored(refined.mesh, gt, capture), "kept": refined.report["kept"],
+                                         "iou_mean_input_refined": refined.report["silhouette_iou_mean"],
+                                         **({"kept_why": refined.report["kept_why"]}
+                                            if "kept_why" in refined.report else {})}
         return record
 
     def _scored(self, mesh, gt, capture) -> dict:

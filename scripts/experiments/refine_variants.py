@@ -52,4 +52,6 @@ for i in map(int, sys.argv[2].split(",")):
         term = result.report.get("normal_term", {})
         print(i, name, "kept" if result.report["kept"] == "refined" else "rejected", round(m["cd"], 2),
               round(m["cdn_mean"], 2), round(min(result.report["silhouette_iou_after"]), 3),
-              "term", term.get("trusted_share"), term.get("kept"), flush=True)
+              "term", term.get("trusted_share"), term.get("kept"),
+              "rerender", result.report.get("rerender_error"), "iou_mean", result.report["silhouette_iou_mean"],
+              result.report.get("kept_why", ""), flush=True)
