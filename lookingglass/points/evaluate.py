@@ -9,7 +9,8 @@ given); `pnet-<strategy>` when point-network weights are given (its training str
 it keeps). Metrics are DESIGN.md's (CD x1e4, Metro x1e3, CDN-mean/med in degrees), on the ground
 truth's unit-sphere scale; with the refine row, `vh`, the pnet row and `refined` also carry the
 re-rendering error against the photos (`render.compare.rerender`) and the worst view's silhouette
-IoU with the masks. Per-scene values are kept so the worst scenes can be read.
+IoU with the masks; `refined` also which mesh the stage kept, its weighted mean IoU before and after,
+and why it refused the refined mesh where it did. Per-scene values are kept so the worst scenes can be read.
 """
 
 from __future__ import annotations
