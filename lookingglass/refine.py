@@ -28,7 +28,8 @@ surface (capture frame, closed) and, in the hull-normalized frame (max |p| = 1):
    (`carve_by_hull`);
 4. keeps the better of the input and the refined mesh on the measures the stage optimizes:
    silhouette IoU against the masks (ray cast at the capture's resolution; the weighted mean, which
-   may fall within `keep_tolerance` only where the re-rendering below is better, and the worst view),
+   may fall within `keep_tolerance` only where the refined mesh re-renders the photos better by more
+   than 1%: the keep check's re-rendering, last paragraph below; and the worst view),
    and, on the remeshed connectivity, the roughness (Laplacian) and fold-overs.
    report.json says which mesh was kept and why.
 
@@ -200,8 +201,8 @@ class RefineConfig:
                                                 "it before the hull carve is tried.", range=(0, 1))
     keep_tolerance: float = setting(0.002, "The refined mesh is kept unless a measure is worse than the input's by "
                                            "more than this (the worst view's IoU; the mean IoU, only where the "
-                                           "refined mesh re-renders the photos better, else strictly; relative for "
-                                           "the roughness).", range=(0, None))
+                                           "refined mesh re-renders the photos better by more than 1%, else "
+                                           "strictly; relative for the roughness).", range=(0, None))
 
     def __post_init__(self) -> None:
         check_ranges(self)
@@ -761,10 +762,11 @@ def worse_measures(iou_in: np.ndarray, iou_out: np.ndarray, weights: np.ndarray,
     (empty: keep it). iou_in / iou_out: each view's silhouette IoU; weights: the views' weights;
     roughness: (input, refined); rerender_errors: (input, refined) against the photos, or None.
 
-    The mean IoU may fall by up to `tol` (2 pixels of a 1000-pixel 128x96 mask) only where the
-    refined mesh re-renders the photos better: a mask is the photo thresholded at pixel centres,
-    the re-rendering compares every pixel. Strict, it refused 20-view meshes with far better
-    normals for 0.001 of IoU (docs/history.md, session 59)."""
+    The mean IoU may fall by up to `tol` (at 128x96, 2 pixels of a 1000-pixel mask) only where the
+    refined mesh re-renders the photos better by more than RERENDER_TOLERANCE: a mask is the photo
+    thresholded at pixel centres, the re-rendering compares every pixel. Strict, it refused
+    20-view meshes with far better normals for 0.001 of IoU (docs/history.md, session 59). (The
+    opt-in photometric term lowers that same error; it is off by default.)"""
     counted = weights > 0 if (weights > 0).any() else np.ones(len(weights), bool)
     worse = []
     photos_better = False

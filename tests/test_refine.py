@@ -279,7 +279,7 @@ def test_an_input_made_worse_is_rejected(scene):
 
 def test_the_keep_check_weighs_a_small_iou_loss_against_the_photos():
     """The mean IoU may fall by up to keep_tolerance only where the refined mesh re-renders the
-    photos better (by more than the re-rendering's own 1% spread); otherwise it is strict, and the
+    photos better (by more than the re-rendering's 1% tolerance); otherwise it is strict, and the
     worst view, the roughness and fold-overs are checked as before."""
     tol, w = 0.002, np.ones(4)
     iou_in = np.array([0.990, 0.992, 0.994, 0.996])
@@ -289,8 +289,11 @@ def test_the_keep_check_weighs_a_small_iou_loss_against_the_photos():
     [why] = worse_measures(iou_in, iou_out, w, rough, 0, None, tol)  # no photos: strict
     assert why.startswith("mean silhouette IoU")
     assert worse_measures(iou_in, iou_out, w, rough, 0, (0.10, 0.08), tol) == []  # photos better: kept
-    assert worse_measures(iou_in, iou_out, w, rough, 0, (0.10, 0.0995), tol)  # within the 1% spread: strict
-    assert worse_measures(iou_in, iou_in - 0.003, w, rough, 0, (0.10, 0.08), tol)  # beyond tol
+    [why] = worse_measures(iou_in, iou_out, w, rough, 0, (0.10, 0.0995), tol)  # within the 1% tolerance: strict
+    assert why.startswith("mean silhouette IoU")
+    # the mean 0.003 lower (beyond tol), the worst view unchanged: refused for the mean alone
+    [why] = worse_measures(iou_in, iou_in - np.array([0, 0.004, 0.004, 0.004]), w, rough, 0, (0.10, 0.08), tol)
+    assert why.startswith("mean silhouette IoU")
     both = worse_measures(iou_in, iou_out, w, rough, 0, (0.10, 0.102), tol)  # photos worse by 2%
     assert [b.split(" ")[0] for b in both] == ["re-rendering", "mean"], both
     # a zero-weight view counts in neither the mean nor the worst view
