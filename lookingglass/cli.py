@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import typer
 from rich.console import Console
@@ -47,7 +48,7 @@ TRAIN_IOR_OPTIONS = ConfigOptions("ior_training")
 SFM_OPTIONS = ConfigOptions("capture", exclude=frozenset({"ball", "stop_after"}))
 BALL_OPTIONS = ConfigOptions("capture", exclude=frozenset({"sfm", "stop_after"}))
 CAPTURE_OPTIONS = ConfigOptions("capture")
-EVAL_SHAPES_OPTIONS = ConfigOptions("pipeline", only=frozenset({"surface.points"}),
+EVAL_SHAPES_OPTIONS = ConfigOptions("pipeline", only=frozenset({"surface.points", "refine"}),
                                     aliases={"surface.points": "--surface-points"})
 
 
@@ -561,6 +562,12 @@ def eval_normals(
     print(markdown_table(table.rows))
 
 
+def _changed_fields(config: Any, default: Any) -> dict[str, Any]:
+    """The fields of a config that differ from `default`'s, as JSON would hold them."""
+    return json.loads(json.dumps({f.name: getattr(config, f.name) for f in dataclasses.fields(config)
+                                  if getattr(config, f.name) != getattr(default, f.name)}))
+
+
 def _held_ior(text: str) -> float | None:
     """An evaluation's --ior: None for "scene" (each scene's own), else the number, checked."""
     from .config import parse_ior
@@ -580,7 +587,7 @@ def eval_shapes(
     max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
     point_weights: Optional[Path] = typer.Option(None, help="PNet weights: adds a pnet row (default: shipped)."),
     refine: bool = typer.Option(True, "--refine/--no-refine", help="Add a `refined` row: the pnet surface through "
-                                "reconstruct's refine stage (its defaults), and score the hull, surface and "
+                                "reconstruct's refine stage (--refine.* sets it), and score the hull, surface and "
                                 "refined mesh against the photos too (re-rendering error, silhouette IoU)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write rows and per-scene metrics as JSON "
                                             "(after every scene; a rerun with the same settings resumes from it)."),
@@ -621,8 +628,9 @@ def eval_shapes(
                 "surface_points": surface.points,
                 "strategies": list(chosen), "latent_iterations": latent_iterations,
                 "point_weights": str(Path(point_weights).resolve()) if point_weights else None, "refine": refine,
-                # only when held: the JSON of an evaluation at each scene's own IoR resumes as before
-                **({"ior": held} if held is not None else {})}
+                # only when held / changed: the JSON of an evaluation at the defaults resumes as before
+                **({"ior": held} if held is not None else {}),
+                **({"refine_changes": changed} if (changed := _changed_fields(pipeline.refine, make_preset().pipeline.refine)) else {})}
     done = []
     if json_out is not None and json_out.exists():
         try:

@@ -41,7 +41,7 @@ class ConfigOptions:
     aliases: dotted field -> a second flag for it (the short spellings the docs use:
         "hull.resolution" -> "--hull-resolution"); errors name a field by its alias.
     exclude: dotted fields (or whole nested configs) without an option (the command sets them).
-    only: when given, the dotted fields that get an option; no other does.
+    only: when given, the dotted fields (or whole nested configs) that get an option; no other does.
     """
 
     config: str
@@ -53,7 +53,8 @@ class ConfigOptions:
         parts = dotted.split(".")
         if any(".".join(parts[:k]) in self.exclude for k in range(1, len(parts) + 1)):
             return False
-        return self.only is None or dotted in self.only or any(o.startswith(dotted + ".") for o in self.only)
+        return self.only is None or any(".".join(parts[:k]) in self.only for k in range(1, len(parts) + 1)) or any(
+            o.startswith(dotted + ".") for o in self.only)
 
 
 @dataclass(frozen=True)

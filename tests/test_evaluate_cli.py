@@ -181,3 +181,31 @@ def test_a_run_folder_inside_the_dataset_is_refused(two_scene_split):
     for out in (two_scene_split / "test", two_scene_split / "test" / "scene_00000", two_scene_split):
         proc = run("train-normals", "--data", two_scene_split, "--out", out, ok=False)
         assert proc.returncode == 2 and "would write into the input" in proc.stderr, proc.stderr
+
+
+def test_eval_shapes_takes_the_refine_settings(tmp_path, monkeypatch):
+    """--refine.* reach the refine stage eval-shapes runs and are recorded in its JSON (only the ones
+    changed, so an evaluation at the defaults resumes from an earlier JSON); a bad value is refused."""
+    from typer.testing import CliRunner
+
+    from lookingglass import cli
+    from lookingglass.config import ConfigError
+    from lookingglass.presets import preset
+
+    seen = []
+    monkeypatch.setattr("lookingglass.data.torch_dataset.TransparentSceneDataset", lambda *a, **k: "dataset")
+    monkeypatch.setattr("lookingglass.points.evaluate.evaluate_shapes",
+                        lambda *a, **k: seen.append(k["refine"]) or {"rows": {}, "scenes": []})
+    runner = CliRunner()
+    base = ["eval-shapes", "--data", "d", "--weights", "w.safetensors", "--point-weights", "p.safetensors",
+            "--device", "cpu", "--quiet"]
+    for flags in (["--refine.fair-weight", "400", "--refine.fair-thickness", "0.2"], []):
+        out = tmp_path / f"shapes{len(flags)}.json"
+        result = runner.invoke(cli.app, [*base, "--json", str(out), *flags])
+        assert result.exit_code == 0, result.output
+        assert json.loads(out.read_text())["settings"].get("refine_changes") == (
+            {"fair_weight": 400.0, "fair_thickness": 0.2} if flags else None)
+    assert (seen[0].fair_weight, seen[0].fair_thickness) == (400.0, 0.2)
+    assert seen[1] == preset().pipeline.refine
+    result = runner.invoke(cli.app, [*base, "--refine.fair-weight", "-1"])
+    assert isinstance(result.exception, ConfigError) and "--refine.fair-weight" in str(result.exception)
