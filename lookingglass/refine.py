@@ -127,9 +127,10 @@ class RefineConfig:
                                          "scaled).", range=(0, None))
     silhouette_width_power: float = setting(3.0, "How fast the silhouette weight falls below silhouette_width (4.27 "
                                                  "until session 57, with plain fairing).", range=(0, 8))
-    fair_width_power: float = setting(2.0, "How fast the fairing weight falls below silhouette_width (2.96 until "
-                                           "session 57, when the fairing stopped shrinking coarse masks' meshes: "
-                                           "fair_curvature_rings).", range=(0, 8))
+    fair_width_power: float = setting(2.524, "How fast the fairing weight falls below silhouette_width (2.96 until "
+                                             "session 57, when the fairing stopped shrinking coarse masks' meshes: "
+                                             "fair_curvature_rings; 2 until session 60, when the fairing at 480 px "
+                                             "doubled and 2.524 kept 128 px masks' weight at 14).", range=(0, 8))
     silhouette_views: int = setting(5, "View count at and above which the silhouette weight applies whole; with V "
                                         "fewer views it is multiplied by this / V (0: never scaled).", range=(0, None))
     field_blur_px: float = setting(0.0, "Gaussian blur (sigma, pixels) of the masks' signed-distance fields the "
@@ -139,14 +140,15 @@ class RefineConfig:
                                         "0.973; docs/history.md, session 49).", range=(0, 4))
     smooth_weight: float = setting(1.0, "Weight of the Laplacian of the displacement (at edge 0.015).",
                                    range=(0, None))
-    fair_weight: float = setting(200.0, "Weight of the Laplacian of the positions (fairing; shrinks, but see "
-                                       "fair_curvature_rings; at edge 0.015 and "
-                                       "masks silhouette_width wide, scaled below as fair_width_power says).",
-                                 range=(0, None))
-    fair_thickness: float = setting(0.0, "Local thickness (shape diameter, hull-normalized frame) below which the fairing "
-                                         "weakens as (thickness / this)^2: a thin part shrinks under it first (0: "
-                                         "uniform fairing; 0.2 kept the key on its masks but left lumps on "
-                                         "thin procedural parts: docs/history.md).", range=(0, None))
+    fair_weight: float = setting(400.0, "Weight of the Laplacian of the positions (fairing; shrinks, but see "
+                                       "fair_curvature_rings and fair_thickness; at edge 0.015 and masks "
+                                       "silhouette_width wide, scaled below as fair_width_power says; 200 until "
+                                       "session 60).", range=(0, None))
+    fair_thickness: float = setting(0.2, "Local thickness (shape diameter, hull-normalized frame) below which the plain "
+                                         "fairing weakens as (thickness / this)^2: a thin part shrinks under it first "
+                                         "(0: uniform fairing; the fairing that keeps the curvature, on coarse masks, "
+                                         "does not shrink it and is not weakened; 0 until session 60).",
+                                    range=(0, None))
     fair_curvature_rings: int = setting(8, "Neighbour-averaging steps that make the fairing's target: each iteration "
                                            "the fairing pulls the Laplacian of the positions toward itself averaged "
                                            "this many times over each vertex's neighbours (a random walk of this "
@@ -502,8 +504,11 @@ def fair_weight(config: RefineConfig, mask_width: int) -> float:
     IoU -0.002 to -0.003) and the keep check refused it, so 4 was kept there (the power 2.96). Pulled
     toward the mesh's own curvature instead of 0 on coarse masks (fair_curvature_share), it no
     longer shrinks them, and 14 (the power 2) irons out more: session 57 (53, the power 1, filled
-    test scene 25's cavity: CD 12.2 -> 16.9). At 480x360 it goes with the silhouette weight, 10 x it
-    (silhouette_weight's docstring)."""
+    test scene 25's cavity: CD 12.2 -> 16.9). At 480x360 it went with the silhouette weight, 10 x it
+    (silhouette_weight's docstring), until session 60: 20 x, with thin parts spared (fair_vertex_shares),
+    took val480's CD 4.35 -> 4.21 and CDN-mean 7.93 -> 7.62 (5 views 13.39 -> 13.14, 14.57 -> 14.24;
+    20 views 3.55 -> 3.30, 6.17 -> 5.86); the power 2.524 keeps 128 px masks at 14, where 28 cost
+    silhouettes (test split, 10 views, 18 scenes: every view >= 0.98 on 13 -> 11)."""
     return config.fair_weight * _width_scale(config, mask_width) ** config.fair_width_power
 
 
@@ -516,6 +521,19 @@ def fair_curvature_share(config: RefineConfig, mask_width: int) -> float:
     if config.fair_curvature_rings == 0:
         return 0.0
     return min(1.0, max(0.0, 2.0 * (1.0 - _width_scale(config, mask_width))))
+
+
+def fair_vertex_shares(config: RefineConfig, mask_width: int, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Each vertex's share of the fairing weight: a thin part has the largest curvature, and plain
+    fairing shrinks it first, so the plain share (1 - fair_curvature_share) is weakened there by
+    (thickness / fair_thickness)^2; the fairing that keeps the curvature (coarse masks) does not
+    shrink it and stays whole. Measured at 480 px with the fairing at 400 (session 60): the key's
+    worst view 0.9763 -> 0.9879 at 5 views, where uniform fairing took it off its masks."""
+    plain = 1.0 - fair_curvature_share(config, mask_width)
+    if config.fair_thickness <= 0 or plain == 0:
+        return np.ones(len(vertices))
+    thin = np.minimum(1.0, (local_thickness(vertices, faces) / config.fair_thickness) ** 2)
+    return 1.0 - plain * (1.0 - thin)
 
 
 def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.ndarray, cams: Cameras,
@@ -835,16 +853,13 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     scale = (REFERENCE_EDGE / config.edge_length) ** 3
     fair, w_sil = fair_weight(config, masks.shape[2]), silhouette_weight(config, masks.shape[2], V)
     w_smooth, w_fair = config.smooth_weight * scale, fair * scale
-    # per-vertex fairing: a thin part has the largest curvature, and fairing shrinks it first
-    fair_share = np.ones(len(x0))
-    if config.fair_thickness > 0:
-        fair_share = np.minimum(1.0, (local_thickness(x0, faces) / config.fair_thickness) ** 2)
+    curvature_share = fair_curvature_share(config, masks.shape[2])
+    fair_share = fair_vertex_shares(config, masks.shape[2], x0, faces)
     c_diag = config.damping + config.anchor_weight
     x = x0.copy()
     history = []
     reference = face_normals(x0, faces)  # what a fold-over is measured against
     solver = _Solver(lap, w_smooth + w_fair * fair_share, c_diag, config.cg_iterations)  # Laplacian rows' weights
-    curvature_share = fair_curvature_share(config, masks.shape[2])
     neighbour_mean = (sp.identity(len(x0), format="csr") - lap).tocsr() if curvature_share else None
 
     def fair_residual(x: np.ndarray) -> np.ndarray:

@@ -100,7 +100,7 @@ def test_fairing_weakened_on_thin_parts_keeps_a_rod_on_its_masks():
     # the weights this was measured with (before 2026-11-26's): fairing 60 x the silhouettes', which shrinks the rod
     # and plain fairing (fair_curvature_rings 0): keeping the curvature also holds the rod (worst view 0.978)
     strong = dataclasses.replace(CONFIG, silhouette_weight=1.0, fair_weight=60.0, silhouette_width_power=2.0,
-                                 fair_width_power=1.0, fair_curvature_rings=0)
+                                 fair_width_power=1.0, fair_curvature_rings=0, fair_thickness=0.0)
     uniform = silhouette_iou(refine_surface(rod, hull, masks, cameras, strong).refined, cameras, masks)
     thin = dataclasses.replace(strong, fair_thickness=0.4)
     weakened = silhouette_iou(refine_surface(rod, hull, masks, cameras, thin).refined, cameras, masks)
@@ -534,3 +534,26 @@ def test_a_robust_misfit_lets_pixels_the_mesh_cannot_follow_go(scene, capture):
         cdn[robust] = shape_metrics(result.refined, gt)["cdn_mean"]
     # measured: plain 4.48, robust 1.79 (the silhouette iterations alone 6.14)
     assert cdn[0.03] < 0.6 * cdn[0.0], cdn
+
+
+def test_only_the_plain_fairing_is_weakened_on_thin_parts():
+    """fair_vertex_shares: at full-width masks (plain fairing) a vertex's share of the fairing is
+    (thickness / fair_thickness)^2 below fair_thickness and 1 above; on coarse masks, where the fairing
+    keeps the curvature and does not shrink a thin part, every share is 1; between, the plain part's
+    share is weakened only."""
+    from lookingglass.refine import fair_curvature_share, fair_vertex_shares
+
+    rod = trimesh.creation.capsule(height=1.0, radius=0.05, count=[16, 16])  # diameter 0.1: half of 0.2
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.4)  # diameter 0.8
+    config = RefineConfig(fair_thickness=0.2)
+    for mesh, most in ((rod, 0.45), (ball, 1.0)):  # the rod's thickness measures 0.1-0.13 (smoothed): 0.25-0.42
+        v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        shares = fair_vertex_shares(config, 480, v, f)
+        assert np.allclose(shares, np.minimum(1.0, (local_thickness(v, f) / 0.2) ** 2))
+        assert np.median(shares) == pytest.approx(most, abs=0.01) if most == 1.0 else 0.2 < np.median(shares) < most
+        assert np.all(fair_vertex_shares(config, 128, v, f) == 1.0)
+        assert np.all(fair_vertex_shares(dataclasses.replace(config, fair_thickness=0.0), 480, v, f) == 1.0)
+    v, f = np.asarray(rod.vertices), np.asarray(rod.faces)
+    keep = fair_curvature_share(config, 360)
+    assert 0 < keep < 1
+    assert np.allclose(fair_vertex_shares(config, 360, v, f), keep + (1 - keep) * fair_vertex_shares(config, 480, v, f))
