@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import sys
 from pathlib import Path
-from typing import Any, Optional
+from typing import Optional
 
 import typer
 from rich.console import Console
@@ -562,12 +561,6 @@ def eval_normals(
     print(markdown_table(table.rows))
 
 
-def _changed_fields(config: Any, default: Any) -> dict[str, Any]:
-    """The fields of a config that differ from `default`'s, as JSON would hold them."""
-    return json.loads(json.dumps({f.name: getattr(config, f.name) for f in dataclasses.fields(config)
-                                  if getattr(config, f.name) != getattr(default, f.name)}))
-
-
 def _held_ior(text: str) -> float | None:
     """An evaluation's --ior: None for "scene" (each scene's own), else the number, checked."""
     from .config import parse_ior
@@ -587,7 +580,7 @@ def eval_shapes(
     max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
     point_weights: Optional[Path] = typer.Option(None, help="PNet weights: adds a pnet row (default: shipped)."),
     refine: bool = typer.Option(True, "--refine/--no-refine", help="Add a `refined` row: the pnet surface through "
-                                "reconstruct's refine stage (--refine.* sets it), and score the hull, surface and "
+                                "reconstruct's refine stage (--refine.* sets it; its JSON records it), and score the hull, surface and "
                                 "refined mesh against the photos too (re-rendering error, silhouette IoU)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write rows and per-scene metrics as JSON "
                                             "(after every scene; a rerun with the same settings resumes from it)."),
@@ -599,6 +592,7 @@ def eval_shapes(
     """Print the paper's Table 2/3 (CD, CDN-mean, CDN-med, Metro) for the hull and the surfaces made
     from normal predictions, as markdown; with --refine (the default), also the refined mesh and
     every mesh's agreement with the photos."""
+    from .configio import config_to_dict
     from .data.torch_dataset import TransparentSceneDataset
     from .fileio import write_json
     from .normals.latent import LatentOptConfig
@@ -628,9 +622,11 @@ def eval_shapes(
                 "surface_points": surface.points,
                 "strategies": list(chosen), "latent_iterations": latent_iterations,
                 "point_weights": str(Path(point_weights).resolve()) if point_weights else None, "refine": refine,
-                # only when held / changed: the JSON of an evaluation at the defaults resumes as before
-                **({"ior": held} if held is not None else {}),
-                **({"refine_changes": changed} if (changed := _changed_fields(pipeline.refine, make_preset().pipeline.refine)) else {})}
+                # only when held: the JSON of an evaluation at each scene's own IoR resumes as before
+                **({"ior": held} if held is not None else {})}
+    refine = refine and point_weights is not None
+    if refine:  # the whole config: a resumed JSON made with other refine settings (or other defaults) is refused
+        settings["refine_config"] = json.loads(json.dumps(config_to_dict(pipeline.refine)))
     done = []
     if json_out is not None and json_out.exists():
         try:
@@ -647,7 +643,7 @@ def eval_shapes(
     save = (lambda partial: write_json(json_out, {"settings": settings, **partial})) if json_out else None
     result = evaluate_shapes(dataset, weights, chosen, latent, surface, max_scenes=max_scenes, reporter=reporter,
                              point_weights=point_weights, done=done, on_scene=save, device=device,
-                             workers=workers, refine=pipeline.refine if refine and point_weights else None, ior=held)
+                             workers=workers, refine=pipeline.refine if refine else None, ior=held)
     if save is not None:
         save(result)
     print(markdown_table(result["rows"]))

@@ -184,8 +184,8 @@ def test_a_run_folder_inside_the_dataset_is_refused(two_scene_split):
 
 
 def test_eval_shapes_takes_the_refine_settings(tmp_path, monkeypatch):
-    """--refine.* reach the refine stage eval-shapes runs and are recorded in its JSON (only the ones
-    changed, so an evaluation at the defaults resumes from an earlier JSON); a bad value is refused."""
+    """--refine.* reach the refine stage eval-shapes runs and its JSON records the whole refine config,
+    so a rerun resumes only with the same settings; a bad value is refused."""
     from typer.testing import CliRunner
 
     from lookingglass import cli
@@ -199,13 +199,22 @@ def test_eval_shapes_takes_the_refine_settings(tmp_path, monkeypatch):
     runner = CliRunner()
     base = ["eval-shapes", "--data", "d", "--weights", "w.safetensors", "--point-weights", "p.safetensors",
             "--device", "cpu", "--quiet"]
-    for flags in (["--refine.fair-weight", "400", "--refine.fair-thickness", "0.2"], []):
+    changed = ["--refine.fair-weight", "300", "--refine.fair-thickness", "0.1"]
+    default = preset().pipeline.refine
+    assert (default.fair_weight, default.fair_thickness) != (300.0, 0.1)
+    for flags in (changed, []):
         out = tmp_path / f"shapes{len(flags)}.json"
         result = runner.invoke(cli.app, [*base, "--json", str(out), *flags])
         assert result.exit_code == 0, result.output
-        assert json.loads(out.read_text())["settings"].get("refine_changes") == (
-            {"fair_weight": 400.0, "fair_thickness": 0.2} if flags else None)
-    assert (seen[0].fair_weight, seen[0].fair_thickness) == (400.0, 0.2)
-    assert seen[1] == preset().pipeline.refine
+        recorded = json.loads(out.read_text())["settings"]["refine_config"]
+        assert (recorded["fair_weight"], recorded["fair_thickness"]) == ((300.0, 0.1) if flags else (
+            default.fair_weight, default.fair_thickness))
+    assert (seen[0].fair_weight, seen[0].fair_thickness) == (300.0, 0.1)
+    assert seen[1] == default
+    # the JSON made with the changed settings resumes with them and is refused without them
+    result = runner.invoke(cli.app, [*base, "--json", str(tmp_path / "shapes4.json"), *changed])
+    assert result.exit_code == 0, result.output
+    result = runner.invoke(cli.app, [*base, "--json", str(tmp_path / "shapes4.json")])
+    assert result.exit_code != 0 and "other settings" in str(result.exception), result.output
     result = runner.invoke(cli.app, [*base, "--refine.fair-weight", "-1"])
     assert isinstance(result.exception, ConfigError) and "--refine.fair-weight" in str(result.exception)

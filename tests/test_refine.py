@@ -112,7 +112,7 @@ def test_fairing_that_keeps_the_curvature_does_not_shrink_a_smooth_shape():
     """Plain fairing pulls the Laplacian of the positions toward 0, which shrinks a curved surface
     wherever the silhouettes hold it weakly (coarse masks); pulled toward its own neighbourhood
     average (fair_curvature_rings), it irons out only what varies faster. The ellipsoid itself, its
-    128x96 masks, the fairing 25 x the default: plain loses 2.5% of the volume, the other 0.3%
+    128x96 masks, the fairing 5000 (25 x the default of the time): plain loses 2.5% of the volume, the other 0.3%
     (measured)."""
     from lookingglass.refine import fair_curvature_share
 
@@ -550,7 +550,10 @@ def test_only_the_plain_fairing_is_weakened_on_thin_parts():
         v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
         shares = fair_vertex_shares(config, 480, v, f)
         assert np.allclose(shares, np.minimum(1.0, (local_thickness(v, f) / 0.2) ** 2))
-        assert np.median(shares) == pytest.approx(most, abs=0.01) if most == 1.0 else 0.2 < np.median(shares) < most
+        if most == 1.0:  # thicker than fair_thickness everywhere: the whole fairing
+            assert np.all(shares == 1.0)
+        else:
+            assert 0.2 < np.median(shares) < most, np.median(shares)
         assert np.all(fair_vertex_shares(config, 128, v, f) == 1.0)
         assert np.all(fair_vertex_shares(dataclasses.replace(config, fair_thickness=0.0), 480, v, f) == 1.0)
     v, f = np.asarray(rod.vertices), np.asarray(rod.faces)
