@@ -580,8 +580,9 @@ def eval_shapes(
     max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
     point_weights: Optional[Path] = typer.Option(None, help="PNet weights: adds a pnet row (default: shipped)."),
     refine: bool = typer.Option(True, "--refine/--no-refine", help="Add a `refined` row: the pnet surface through "
-                                "reconstruct's refine stage (--refine.* sets it; its JSON records it), and score the hull, surface and "
-                                "refined mesh against the photos too (re-rendering error, silhouette IoU)."),
+                                "reconstruct's refine stage (--refine.* sets it; its JSON records it), and score "
+                                "the hull, surface and refined mesh against the photos too (re-rendering error, "
+                                "silhouette IoU)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write rows and per-scene metrics as JSON "
                                             "(after every scene; a rerun with the same settings resumes from it)."),
     ior: str = typer.Option("scene", "--ior", help=EVAL_IOR_HELP),

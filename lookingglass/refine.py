@@ -506,9 +506,10 @@ def fair_weight(config: RefineConfig, mask_width: int) -> float:
     longer shrinks them, and 14 (the power 2) irons out more: session 57 (53, the power 1, filled
     test scene 25's cavity: CD 12.2 -> 16.9). At 480x360 it went with the silhouette weight, 10 x it
     (silhouette_weight's docstring), until session 60: 20 x, with thin parts spared (fair_vertex_shares),
-    took val480's CD 4.35 -> 4.21 and CDN-mean 7.93 -> 7.62 (5 views 13.39 -> 13.14, 14.57 -> 14.24;
-    20 views 3.55 -> 3.30, 6.17 -> 5.86); the power 2.524 keeps 128 px masks at 14, where 28 cost
-    silhouettes (test split, 10 views, 18 scenes: every view >= 0.98 on 13 -> 11)."""
+    took `validate`'s CDN-mean 7.93 -> 7.73 on val480 at the same CD (4.32 -> 4.31), 5 views CD 13.38 ->
+    13.19 and CDN-mean 14.54 -> 14.32, 20 views 3.57 -> 3.26 and 6.17 -> 5.84; the power 2.524 keeps
+    128 px masks at 14, where 28 cost silhouettes (test split, 10 views, 18 scenes: every view >= 0.98
+    on 13 -> 11)."""
     return config.fair_weight * _width_scale(config, mask_width) ** config.fair_width_power
 
 
