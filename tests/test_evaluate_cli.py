@@ -185,7 +185,7 @@ def test_a_run_folder_inside_the_dataset_is_refused(two_scene_split):
 
 def test_eval_shapes_takes_the_refine_settings(tmp_path, monkeypatch):
     """--refine.* reach the refine stage eval-shapes runs and its JSON records the whole refine config,
-    so a rerun resumes only with the same settings; a bad value is refused."""
+    so a rerun resumes only with the same settings; a bad value, or settings with --no-refine, are refused."""
     from typer.testing import CliRunner
 
     from lookingglass import cli
@@ -218,3 +218,6 @@ def test_eval_shapes_takes_the_refine_settings(tmp_path, monkeypatch):
     assert result.exit_code != 0 and "other settings" in str(result.exception), result.output
     result = runner.invoke(cli.app, [*base, "--refine.fair-weight", "-1"])
     assert isinstance(result.exception, ConfigError) and "--refine.fair-weight" in str(result.exception)
+    # settings for a row that is not made are refused, not ignored
+    result = runner.invoke(cli.app, [*base, "--no-refine", *changed])
+    assert result.exit_code != 0 and "--no-refine" in str(result.exception), result.output
