@@ -626,8 +626,8 @@ def eval_shapes(
                 # only when held: the JSON of an evaluation at each scene's own IoR resumes as before
                 **({"ior": held} if held is not None else {})}
     if not (refine and point_weights is not None) and pipeline.refine != make_preset().pipeline.refine:
-        raise LookingGlassError("--refine.* settings given, but no refined row is made ("
-                                + ("--no-refine" if not refine else "no point-net weights") + "): drop them or the reason")
+        why = "--no-refine" if not refine else "no point-net weights"
+        raise LookingGlassError(f"--refine.* settings given, but no refined row is made ({why}): drop them or {why}")
     refine = refine and point_weights is not None
     if refine:  # the whole config: a resumed JSON made with other refine settings (or other defaults) is refused
         settings["refine_config"] = json.loads(json.dumps(config_to_dict(pipeline.refine)))
