@@ -11,7 +11,7 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
-from .cliconfig import ConfigOptions, apply_config_flags, config_command
+from .cliconfig import CONFIG_VALUES, ConfigOptions, apply_config_flags, config_command
 from .errors import Interrupted, LookingGlassError
 from .physics.constants import IOR_GLASS, IOR_MAX, IOR_MIN, PAPER_CAPTURE_FOV_X_DEG, check_ior, check_ior_range
 from .presets import DEFAULT_PRESET, PRESET_NAMES
@@ -625,9 +625,11 @@ def eval_shapes(
                 "point_weights": str(Path(point_weights).resolve()) if point_weights else None, "refine": refine,
                 # only when held: the JSON of an evaluation at each scene's own IoR resumes as before
                 **({"ior": held} if held is not None else {})}
-    if not (refine and point_weights is not None) and pipeline.refine != make_preset().pipeline.refine:
-        why = "--no-refine" if not refine else "no point-net weights"
-        raise LookingGlassError(f"--refine.* settings given, but no refined row is made ({why}): drop them or {why}")
+    refine_flags = [k for k in ctx.meta.get(CONFIG_VALUES, {}) if k.startswith("refine.")]
+    if refine_flags and not (refine and point_weights is not None):
+        why, fix = (("--no-refine", "drop --no-refine") if not refine else
+                    ("no point-net weights", "pass --point-weights"))
+        raise LookingGlassError(f"--refine.* settings given, but no refined row is made ({why}): drop them, or {fix}")
     refine = refine and point_weights is not None
     if refine:  # the whole config: a resumed JSON made with other refine settings (or other defaults) is refused
         settings["refine_config"] = json.loads(json.dumps(config_to_dict(pipeline.refine)))

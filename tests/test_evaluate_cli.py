@@ -218,6 +218,10 @@ def test_eval_shapes_takes_the_refine_settings(tmp_path, monkeypatch):
     assert result.exit_code != 0 and "other settings" in str(result.exception), result.output
     result = runner.invoke(cli.app, [*base, "--refine.fair-weight", "-1"])
     assert isinstance(result.exception, ConfigError) and "--refine.fair-weight" in str(result.exception)
-    # settings for a row that is not made are refused, not ignored
-    result = runner.invoke(cli.app, [*base, "--no-refine", *changed])
-    assert result.exit_code != 0 and "--no-refine" in str(result.exception), result.output
+    # settings for a row that is not made are refused, not ignored (even one that repeats the default);
+    # --no-refine alone runs
+    for flags in (changed, ["--refine.fair-weight", str(default.fair_weight)]):
+        result = runner.invoke(cli.app, [*base, "--no-refine", *flags])
+        assert result.exit_code != 0 and "drop --no-refine" in str(result.exception), result.output
+    result = runner.invoke(cli.app, [*base, "--no-refine"])
+    assert result.exit_code == 0, result.output

@@ -9,7 +9,9 @@ files linked) where, in a seeded `share` of them, vh_mask / vh_n1 / vh_n2 / vh_v
 of the ground truth perturbed like a refined mesh: its sharp edges rounded (Taubin smoothing, 0-12 passes after
 subdividing to edges of 0.02), a smooth displacement along the normals (three random plane waves, wavelength
 0.3-2, amplitude up to 0.012 each) and an offset of -0.004 to +0.010 (refined meshes sit outside the object). meta.json
-says which ("input": "hull" or "near_truth", with the draw). Resumable: finished scenes are kept.
+says which ("input": {"kind": "hull"} or {"kind": "near_truth", ...the draw}). Every SRC scene must be finished (a
+partial split is refused). Resumable: finished scenes are kept, and DST/train/near_truth.json records --share and
+--seed so that a rerun with others is refused rather than mixing two draws. SRC is only read.
 """
 import argparse
 import json
@@ -21,7 +23,7 @@ import numpy as np
 import torch
 import trimesh
 
-from lookingglass.data.dataset import _bool, _f16, load_maps, load_scene_mesh, load_scene_meta, scene_cameras
+from lookingglass.data.dataset import _bool, _f16, is_finished, load_maps, load_scene_mesh, load_scene_meta, scene_cameras
 from lookingglass.fileio import write_atomic, write_json
 from lookingglass.render.tracer import trace_two_bounce
 
@@ -57,10 +59,18 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     src, dst = Path(args.src) / "train", Path(args.dst) / "train"
+    scenes = sorted(d for d in src.iterdir() if d.is_dir() and d.name.startswith("scene_"))
+    unfinished = [d.name for d in scenes if not is_finished(d)]
+    if unfinished:
+        raise SystemExit(f"{src}: unfinished scene(s) {', '.join(unfinished[:5])}: let `generate` finish first")
     dst.mkdir(parents=True, exist_ok=True)
+    draw = {"share": args.share, "seed": args.seed}
+    recorded = dst / "near_truth.json"
+    if recorded.is_file() and json.loads(recorded.read_text()) != draw:
+        raise SystemExit(f"{recorded} holds another draw ({json.loads(recorded.read_text())}); pick another DST")
+    write_json(recorded, draw)
     shutil.copy(src / "config.json", dst / "config.json")
     torch.set_num_threads(1)
-    scenes = sorted(d for d in src.iterdir() if d.is_dir() and (d / "meta.json").is_file())
     for k, scene in enumerate(scenes):
         out = dst / scene.name
         if (out / "meta.json").is_file():
