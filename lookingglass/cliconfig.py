@@ -51,10 +51,11 @@ class ConfigOptions:
 
     def wants(self, dotted: str) -> bool:
         parts = dotted.split(".")
-        if any(".".join(parts[:k]) in self.exclude for k in range(1, len(parts) + 1)):
+        enclosing = {".".join(parts[:k]) for k in range(1, len(parts) + 1)}  # the field and the configs holding it
+        if enclosing & self.exclude:
             return False
-        return self.only is None or any(".".join(parts[:k]) in self.only for k in range(1, len(parts) + 1)) or any(
-            o.startswith(dotted + ".") for o in self.only)
+        # `only` names the field, a config holding it, or (for a nested config) a field inside it
+        return self.only is None or bool(enclosing & self.only) or any(o.startswith(dotted + ".") for o in self.only)
 
 
 @dataclass(frozen=True)
