@@ -84,6 +84,7 @@ import trimesh
 from .configio import check_ranges, setting
 from .errors import ConfigError
 from .hull import VisualHull, sample_silhouette_fields, silhouette_fields
+from .meshes import MIN_COMPONENT_AREA, without_crumbs
 from .normals.render_layer import comparable, render_layer
 from .physics.camera import Cameras
 from .physics.environment import EnvironmentMap
@@ -769,6 +770,10 @@ def carve_by_hull(refined: trimesh.Trimesh, hull_mesh: trimesh.Trimesh, cameras:
     if not (len(carved.faces) and carved.is_watertight):
         report.update(kept=False, why="the intersection is not a closed mesh")
         return None, None, report
+    if carved.body_count > 1:  # slivers where the refined mesh grazes the hull from outside
+        pieces = carved.split(only_watertight=False)
+        carved = without_crumbs(pieces, MIN_COMPONENT_AREA)
+        report["crumbs_dropped"] = len(pieces) - int(carved.body_count)
     cast_carved = object_masks(carved, cameras)
     before, after = (weighted_mean(cast_iou(c, masks), weights) for c in (cast, cast_carved))
     report.update(iou_mean=[round(before, 4), round(after, 4)], kept=after > before + config.keep_tolerance)

@@ -35,12 +35,11 @@ from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
 from .errors import LookingGlassError
-from .meshes import manifold_mesh, merged_and_repaired, require_closed_and_oriented, taubin_smooth, without_crumbs
+from .meshes import MIN_COMPONENT_AREA, manifold_mesh, merged_and_repaired, require_closed_and_oriented, taubin_smooth, wind_cavities_inward, without_crumbs
 
 __all__ = ["poisson_surface", "close_narrow_tunnels", "DEFAULT_TRIM_FRACTION"]
 
 DEFAULT_TRIM_FRACTION = 0.05  # trim_distance default: this fraction of the hull's (or points') bbox diagonal
-MIN_COMPONENT_AREA = 1e-3  # components smaller than this fraction of the largest one's area are dropped
 _MIN_POINTS = 16  # Poisson on fewer oriented points gives nothing meaningful
 
 
@@ -147,6 +146,7 @@ def poisson_surface(points, normals, depth: int = 8, hull: trimesh.Trimesh | Non
         mesh.vertices = taubin_smooth(mesh.vertices, mesh.faces, int(smooth_iterations))
 
     mesh.fix_normals(multibody=True)  # consistent winding, each body outward
+    mesh = wind_cavities_inward(mesh)  # but a body inside another is a cavity
     require_closed_and_oriented(mesh, "Poisson surface", "; try a lower depth or denser points")
     mesh.metadata["poisson"] = {
         "depth": int(depth),
@@ -242,6 +242,7 @@ def close_narrow_tunnels(mesh: trimesh.Trimesh, pitch: float, radius: int, sampl
         raise LookingGlassError("closing the narrow tunnels left no surface")
     closed = without_crumbs(parts, MIN_COMPONENT_AREA)
     closed.fix_normals(multibody=True)  # consistent winding, each body outward
+    closed = wind_cavities_inward(closed)  # but a body inside another is a cavity
     require_closed_and_oriented(closed, "the surface with its narrow tunnels closed")
     closed.metadata["closing"] = {"pitch": float(pitch), "radius": int(radius), "cells_added": int(added.sum())}
     return closed

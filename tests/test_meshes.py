@@ -8,7 +8,7 @@ import trimesh
 
 from lookingglass.errors import LookingGlassError
 from lookingglass.meshes import (largest_component, orient_outward, require_closed_and_oriented, signed_volume,
-                                 taubin_smooth, without_crumbs)
+                                 taubin_smooth, wind_cavities_inward, without_crumbs)
 
 
 def unit_cube() -> trimesh.Trimesh:
@@ -91,6 +91,20 @@ def test_without_crumbs_keeps_every_real_piece():
     assert len(kept.faces) == len(big.faces) + len(second.faces)
     assert kept.area == pytest.approx(big.area + second.area)
     assert without_crumbs([crumb, big], 1e-3) is big  # one piece left: that piece itself
+
+
+def test_wind_cavities_inward_by_nesting_depth():
+    """A body inside one other is a cavity (wound inward), inside two an island in it (outward), a
+    body beside the others stays as it is; a one-body mesh comes back unchanged."""
+    spheres = [trimesh.creation.icosphere(subdivisions=2, radius=r) for r in (1.0, 0.6, 0.3)]
+    beside = trimesh.creation.icosphere(subdivisions=2, radius=0.5).apply_translation([3, 0, 0])
+    mesh = trimesh.util.concatenate(spheres + [beside])
+    wound = wind_cavities_inward(mesh)
+    volumes = sorted(round(body.volume, 6) for body in wound.split(only_watertight=False))
+    expected = sorted(round(v, 6) for v in (spheres[0].volume, -spheres[1].volume, spheres[2].volume, beside.volume))
+    assert volumes == expected
+    assert wound.is_watertight and wound.is_winding_consistent
+    assert wind_cavities_inward(spheres[0]) is spheres[0]
 
 
 def test_taubin_smooth_removes_noise_without_shrinking():

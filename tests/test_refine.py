@@ -258,6 +258,14 @@ def test_slots_the_surface_filled_are_carved_back_by_the_hull():
     assert shape_metrics(carved, gt)["cd"] < 0.97 * shape_metrics(plain.mesh, gt)["cd"]
     # the report's IoU is the carved mesh's
     assert report["iou_mean"][1] == pytest.approx(iou_carved.mean(), abs=1e-4)
+    assert "crumbs_dropped" not in report
+    # a speck grazing the hull from outside leaves no crumb in the carve
+    depth = trimesh.proximity.signed_distance(plain.mesh, hull.mesh.vertices)  # hull corners far out of the mesh
+    speck = trimesh.creation.icosphere(subdivisions=2, radius=0.01).apply_translation(hull.mesh.vertices[np.argmin(depth)])
+    specked, _, report = carve_by_hull(trimesh.util.concatenate([plain.mesh, speck]), hull.mesh, cameras, masks, cast,
+                                       weights, CONFIG)
+    assert report["kept"] and report["crumbs_dropped"] == 1 and specked.body_count == 1, report
+    assert specked.volume == pytest.approx(carved.volume, rel=1e-6)
     # not tried where nothing spills; not kept where the hull falls short of the masks (here: shrunk)
     assert carve_by_hull(gt, hull.mesh, cameras, masks, masks, weights, CONFIG)[2] == {
         "outside_share_max": 0.0, "tried": False}

@@ -102,6 +102,20 @@ def test_far_component_outside_the_hull_is_dropped_near_ones_kept():
     assert abs(m2.volume / volume - 1) < 3 * voxel / 0.5  # volume error ~ 3 x relative radius error
 
 
+def test_a_cavity_stays_a_cavity():
+    """A hollow ball (outer radius 1, an air pocket of radius 0.5 whose points' normals face into it):
+    two bodies, the pocket wound inward, so the solid's volume is 4/3 pi (1 - 0.5^3); wound outward
+    like a second solid (trimesh's multibody fix alone) it would be 4/3 pi (1 + 0.5^3)."""
+    p1, n1 = sphere_points(6000, seed=4)
+    p2, n2 = sphere_points(3000, seed=5, radius=0.5)
+    m = poisson_surface(np.concatenate([p1, p2]), np.concatenate([n1, -n2]), depth=8)
+    assert m.is_watertight and m.body_count == 2
+    volume = 4 / 3 * np.pi * (1 - 0.5 ** 3)
+    assert abs(m.volume / volume - 1) < 3 * VOXEL / 0.5, m.volume  # 3 x the pocket's relative radius error
+    inner = min(m.split(only_watertight=False), key=lambda body: body.area)
+    assert inner.volume < 0 and np.abs(np.linalg.norm(inner.vertices, axis=1) - 0.5).max() < VOXEL
+
+
 def test_inward_normals_smoothing_and_invalid_rows():
     p, n = sphere_points(2000, seed=4)
     p[:5] = np.nan  # dropped, and counted

@@ -67,7 +67,7 @@ def main() -> None:
             stage = lambda mesh, c=capture, n=net, l=latent: run_normal_stage(c, mesh, n, l)  # noqa: E731
         h, s = shape_metrics(hull.mesh, gt), shape_metrics(surface, gt)
         print(f"{name:15s} hull    CD {h['cd']:6.2f} CDN {h['cdn_mean']:6.2f} metro {h['metro']:6.2f} | "
-              f"surface CD {s['cd']:6.2f} CDN {s['cdn_mean']:6.2f}", flush=True)
+              f"surface CD {s['cd']:6.2f} CDN {s['cdn_mean']:6.2f} vol {surface.volume / gt.volume:.3f}", flush=True)
         for v in args.variants:
             t = time.perf_counter()
             result = refine_surface(surface, hull, capture.masks, capture.cameras, variant(v), capture=capture,
@@ -81,7 +81,7 @@ def main() -> None:
             term_text = "term " + ("-" if "kept" not in term else "kept" if term["kept"] else "dropped")
             rows[v].append((h["cd"], h["cdn_mean"], m["cd"], m["cdn_mean"], m["metro"], iou, kept, seconds, rr))
             print(f"{name:15s} {v:40s} CD {m['cd']:6.2f} CDN {m['cdn_mean']:6.2f} metro {m['metro']:6.2f} "
-                  f"IoU {iou:.4f} trusted {result.report.get('normal_term', {}).get('trusted_share', 0):.3f} bias {result.report['terms_after'].get('silhouette_bias_px', np.nan):+.3f}px rr {rr:.4f} {term_text} {'kept' if kept else 'REJECTED ' + result.report.get('kept_why', '')} "
+                  f"vol {result.refined.volume / gt.volume:.3f} IoU {iou:.4f} trusted {result.report.get('normal_term', {}).get('trusted_share', 0):.3f} bias {result.report['terms_after'].get('silhouette_bias_px', np.nan):+.3f}px rr {rr:.4f} {term_text} {'kept' if kept else 'REJECTED ' + result.report.get('kept_why', '')} "
                   f"{seconds:.1f}s", flush=True)
     # ratios of the means, as docs/results.md and issue 25's bars use them
     print("\nmeans: CD/hull CDN/hull CD CDN Metro | worst IoU | kept | seconds | rerender")
