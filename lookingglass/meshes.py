@@ -21,6 +21,7 @@ __all__ = [
     "TAUBIN_MU",
     "MIN_COMPONENT_AREA",
     "signed_volume",
+    "body_volumes",
     "orient_outward",
     "require_closed_and_oriented",
     "check_glass_mesh",
@@ -60,6 +61,15 @@ def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     vertices (N, 3) float64, faces (M, 3) int.
     """
     return float(_six_tetra_volumes(vertices, faces).sum()) / 6.0
+
+
+def body_volumes(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(B,) signed volume of each body (connected component with faces) of a closed mesh: negative
+    for a body wound inward (a cavity, `wind_cavities_inward`). vertices (N, 3), faces (M, 3) int."""
+    count, face_label = face_components(faces, len(vertices))
+    faces_per_label = np.bincount(face_label, minlength=count)
+    volumes = np.bincount(face_label, weights=_six_tetra_volumes(vertices, faces), minlength=count) / 6.0
+    return volumes[faces_per_label > 0]
 
 
 def orient_outward(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -38,6 +38,7 @@ from .fileio import resolved_path, staged_dir, write_atomic, write_json
 from .hull import VisualHull, carve_visual_hull
 from .ior import MIN_CONTRAST, RELIABLE_MIN_WIDTH, assumed_ior, estimate_ior
 from .ior_net import LEARNED_RELIABLE_STD, learned_ior, load_ior_net
+from .meshes import body_volumes
 from .normals.stage import NormalStageResult, run_normal_stage, second_pass, write_normal_views
 from .points.stage import surface_from_normals
 from .progress import Reporter, peak_memory_mb
@@ -67,9 +68,13 @@ def write_mesh(path: Path, mesh: trimesh.Trimesh) -> Path:
 
 
 def mesh_summary(mesh: trimesh.Trimesh) -> dict:
+    """What report.json says of a mesh: sizes, closedness, volume, bounds, and its bodies: the
+    pieces it comes in, of which `cavities` are wound inward (air pockets in the glass)."""
+    bodies = body_volumes(np.asarray(mesh.vertices), np.asarray(mesh.faces))
     return {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)),
             "watertight": bool(mesh.is_watertight), "volume": float(mesh.volume) if mesh.is_watertight else None,
-            "bounds": mesh.bounds.tolist()}
+            "bounds": mesh.bounds.tolist(), "bodies": int(len(bodies)),
+            "cavities": int((bodies < 0).sum()) if mesh.is_watertight else None}
 
 
 def write_points(path: Path, points: np.ndarray, normals: np.ndarray) -> Path:

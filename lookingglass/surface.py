@@ -35,7 +35,8 @@ from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
 from .errors import LookingGlassError
-from .meshes import MIN_COMPONENT_AREA, manifold_mesh, merged_and_repaired, require_closed_and_oriented, taubin_smooth, wind_cavities_inward, without_crumbs
+from .meshes import (MIN_COMPONENT_AREA, manifold_mesh, merged_and_repaired, require_closed_and_oriented, taubin_smooth,
+                     wind_cavities_inward, without_crumbs)
 
 __all__ = ["poisson_surface", "close_narrow_tunnels", "DEFAULT_TRIM_FRACTION"]
 

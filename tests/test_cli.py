@@ -29,6 +29,7 @@ def test_render_reconstruct_evaluate(rendered_scene, tmp_path):
     assert report["stages_run"] == expected and report["num_views"] == 10
     assert report["mesh_from"] == expected[-1]
     assert report["stages"][1]["seconds"] > 0 and report["config"]["hull"]["resolution"] == 128
+    assert report["stages"][1]["mesh"]["bodies"] == 1 and report["stages"][1]["mesh"]["cavities"] == 0  # the hull
     assert (root / "out" / "report.html").stat().st_size > 100_000  # tests/test_report.py looks inside
     hull = trimesh.load(root / "out" / "visual_hull.ply", force="mesh")
     mesh = trimesh.load(root / "out" / "mesh.ply", force="mesh")

@@ -7,8 +7,8 @@ import pytest
 import trimesh
 
 from lookingglass.errors import LookingGlassError
-from lookingglass.meshes import (largest_component, orient_outward, require_closed_and_oriented, signed_volume,
-                                 taubin_smooth, wind_cavities_inward, without_crumbs)
+from lookingglass.meshes import (body_volumes, largest_component, orient_outward, require_closed_and_oriented,
+                                 signed_volume, taubin_smooth, wind_cavities_inward, without_crumbs)
 
 
 def unit_cube() -> trimesh.Trimesh:
@@ -104,6 +104,7 @@ def test_wind_cavities_inward_by_nesting_depth():
     expected = sorted(round(v, 6) for v in (spheres[0].volume, -spheres[1].volume, spheres[2].volume, beside.volume))
     assert volumes == expected
     assert wound.is_watertight and wound.is_winding_consistent
+    assert sorted(np.round(body_volumes(wound.vertices, wound.faces), 6)) == expected
     assert wind_cavities_inward(spheres[0]) is spheres[0]
 
 

@@ -52,6 +52,10 @@ for name in sorted(json.loads((root / "index.json").read_text())["shapes"]):
                                  normal_angle_errors(n2, truth.normal2, two)["median"]))
     rows[name] = row
     print(name, {k: f"hull {h[0]:.2f}/{h[1]:.2f} net {p[0]:.2f}/{p[1]:.2f}" for k, (h, p) in row.items()}, flush=True)
+families = json.loads((root / "index.json").read_text())["shapes"]
 for label, *_ in nets:
-    h1, h2, a, b = (np.mean([r[label][i][j] for r in rows.values()]) for i, j in ((0, 0), (0, 1), (1, 0), (1, 1)))
-    print(f"MEAN {label}: hull N1 {h1:.2f} N2 {h2:.2f} | net N1 {a:.2f} ({a / h1:.3f}x)  N2 {b:.2f} ({b / h2:.3f}x)")
+    for family in [None, *sorted(set(families.values()))]:
+        chosen = [r for n, r in rows.items() if family in (None, families[n])]
+        h1, h2, a, b = (np.mean([r[label][i][j] for r in chosen]) for i, j in ((0, 0), (0, 1), (1, 0), (1, 1)))
+        print(f"MEAN {label} {family or 'all'}: hull N1 {h1:.2f} N2 {h2:.2f} | net N1 {a:.2f} ({a / h1:.3f}x)  "
+              f"N2 {b:.2f} ({b / h2:.3f}x)")
