@@ -770,10 +770,14 @@ def carve_by_hull(refined: trimesh.Trimesh, hull_mesh: trimesh.Trimesh, cameras:
     if not (len(carved.faces) and carved.is_watertight):
         report.update(kept=False, why="the intersection is not a closed mesh")
         return None, None, report
-    if carved.body_count > 1:  # slivers where the refined mesh grazes the hull from outside
-        pieces = carved.split(only_watertight=False)
+    pieces = carved.split(only_watertight=False) if carved.body_count > 1 else [carved]
+    if len(pieces) > 1:
+        # slivers where the refined mesh grazes the hull from outside; cavities under the same share
+        # of the area go too, as in the surface stage
         carved = without_crumbs(pieces, MIN_COMPONENT_AREA)
-        report["crumbs_dropped"] = len(pieces) - int(carved.body_count)
+        dropped = len(pieces) - int(carved.body_count)
+        if dropped:
+            report["crumbs_dropped"] = dropped
     cast_carved = object_masks(carved, cameras)
     before, after = (weighted_mean(cast_iou(c, masks), weights) for c in (cast, cast_carved))
     report.update(iou_mean=[round(before, 4), round(after, 4)], kept=after > before + config.keep_tolerance)

@@ -18,8 +18,9 @@ screened Poisson reconstruction (Kazhdan & Hoppe 2013, via pymeshlab
    unsampled and Poisson bridged it.
 4. Optional Taubin smoothing (lambda/mu, no shrinkage; moves vertices only, so watertightness
    is kept).
-5. Consistent winding, outward orientation (positive volume), and a final check: a result that is
-   empty, not watertight or of non-positive volume raises LookingGlassError.
+5. Consistent winding, each body outward but a body inside another inward (a cavity:
+   `meshes.wind_cavities_inward`), and a final check: a result that is empty, not watertight or of
+   non-positive volume raises LookingGlassError.
 
 Frames: any; points, normals and hull share one frame (normally the normalized unit-sphere frame).
 """
@@ -87,7 +88,7 @@ def poisson_surface(points, normals, depth: int = 8, hull: trimesh.Trimesh | Non
                     trim_distance: float | None = None, smooth_iterations: int = 0,
                     threads: int = 0, samples_per_node: float = 1.5,
                     point_weight: float = 4.0) -> trimesh.Trimesh:
-    """Watertight, outward-oriented mesh from oriented points by screened Poisson.
+    """Watertight, outward-oriented mesh (cavities wound inward) from oriented points by screened Poisson.
 
     points: (N, 3) positions; normals: (N, 3) outward normals (need not be unit), same frame;
     numpy or torch. Rows with non-finite values or zero normals are dropped.
@@ -98,7 +99,8 @@ def poisson_surface(points, normals, depth: int = 8, hull: trimesh.Trimesh | Non
     a hull). smooth_iterations: Taubin smoothing steps (0 = none). threads: Poisson threads (0 =
     half the cores). samples_per_node, point_weight: MeshLab's screened-Poisson parameters.
 
-    Returns a trimesh.Trimesh, watertight with consistent outward winding. Its
+    Returns a trimesh.Trimesh, watertight with consistent outward winding (a body inside another
+    inward: a cavity). Its
     metadata["poisson"] holds: depth, points_used, points_dropped, components, components_dropped,
     far_faces, trim_distance. Raises LookingGlassError when too few valid points are given or the
     result is empty or not watertight.
@@ -227,8 +229,9 @@ def close_narrow_tunnels(mesh: trimesh.Trimesh, pitch: float, radius: int, sampl
     Poisson opens tunnels narrower than the point spacing. They change the genus (wrong topology)
     but hardly the Chamfer distance; a real hole through the object (a handle) is much wider and
     survives. Closing can also bridge a groove over a wider channel and so add a handle: callers
-    compare the genus before and after. The result is watertight and outward-oriented;
-    metadata["closing"] says how much solid the closing added (in grid cells)."""
+    compare the genus before and after. The result is watertight and outward-oriented (the fill
+    below closes every pocket, Poisson's cavities too, so it has none); metadata["closing"] says how
+    much solid the closing added (in grid cells)."""
     # a margin wider than the ball: the closing's dilation must not reach the grid's border
     field, lo = signed_distance_grid(mesh, pitch, margin=int(radius) + 3, samples=samples, seed=seed)
     inside = field < 0
@@ -242,8 +245,7 @@ def close_narrow_tunnels(mesh: trimesh.Trimesh, pitch: float, radius: int, sampl
     if not parts:
         raise LookingGlassError("closing the narrow tunnels left no surface")
     closed = without_crumbs(parts, MIN_COMPONENT_AREA)
-    closed.fix_normals(multibody=True)  # consistent winding, each body outward
-    closed = wind_cavities_inward(closed)  # but a body inside another is a cavity
+    closed.fix_normals(multibody=True)  # consistent winding, each body outward (the fill left no cavity)
     require_closed_and_oriented(closed, "the surface with its narrow tunnels closed")
     closed.metadata["closing"] = {"pitch": float(pitch), "radius": int(radius), "cells_added": int(added.sum())}
     return closed

@@ -106,6 +106,13 @@ def test_wind_cavities_inward_by_nesting_depth():
     assert wound.is_watertight and wound.is_winding_consistent
     assert sorted(np.round(body_volumes(wound.vertices, wound.faces), 6)) == expected
     assert wind_cavities_inward(spheres[0]) is spheres[0]
+    # a wrinkled pocket may have more area than the smooth shell around it: volume decides
+    pocket = trimesh.creation.icosphere(subdivisions=5)
+    pocket.vertices *= (0.62 + 0.28 * np.prod(np.sin(16 * pocket.vertices), axis=1))[:, None]  # star-shaped, r < 0.9
+    assert pocket.area > spheres[0].area
+    wound = wind_cavities_inward(trimesh.util.concatenate([spheres[0], pocket]))
+    assert sorted(np.round(body_volumes(wound.vertices, wound.faces), 6)) == [round(-pocket.volume, 6),
+                                                                              round(spheres[0].volume, 6)]
 
 
 def test_taubin_smooth_removes_noise_without_shrinking():

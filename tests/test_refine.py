@@ -261,6 +261,7 @@ def test_slots_the_surface_filled_are_carved_back_by_the_hull():
     assert "crumbs_dropped" not in report
     # a speck grazing the hull from outside leaves no crumb in the carve
     depth = trimesh.proximity.signed_distance(plain.mesh, hull.mesh.vertices)  # hull corners far out of the mesh
+    assert depth.min() < -0.02  # the speck lies out of the mesh
     corner = hull.mesh.vertices[np.argmin(depth)]
     speck = trimesh.creation.icosphere(subdivisions=2, radius=0.01).apply_translation(corner)
     specked, _, report = carve_by_hull(trimesh.util.concatenate([plain.mesh, speck]), hull.mesh, cameras, masks, cast,
