@@ -100,9 +100,8 @@ def poisson_surface(points, normals, depth: int = 8, hull: trimesh.Trimesh | Non
     half the cores). samples_per_node, point_weight: MeshLab's screened-Poisson parameters.
 
     Returns a trimesh.Trimesh, watertight with consistent outward winding (a body inside another
-    inward: a cavity). Its
-    metadata["poisson"] holds: depth, points_used, points_dropped, components, components_dropped,
-    far_faces, trim_distance. Raises LookingGlassError when too few valid points are given or the
+    inward: a cavity). Its metadata["poisson"] holds: depth, points_used, points_dropped,
+    components, components_dropped, far_faces, trim_distance. Raises LookingGlassError when too few valid points are given or the
     result is empty or not watertight.
     """
     p = _numpy64(points, "points")
