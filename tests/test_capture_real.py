@@ -88,7 +88,9 @@ def test_import_colmap_hull_matches_true_cameras(glass_capture, tmp_path):
     print(f"hull CD x1e4: true cameras {cd_true:.2f}, import-colmap {cd_imported:.2f}")
     assert cd_imported <= 1.1 * cd_true, (cd_true, cd_imported)
     # the map's frame follows the world's: E_scene(R d) == E_true(d)
-    d = torch.nn.functional.normalize(torch.randn(2000, 3, dtype=torch.float64), dim=-1)
+    # seeded and 20 000 directions: 2000 unseeded ones gave 0.966-0.992 with the test order (0.983 at 200 000)
+    d = torch.randn(20000, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    d = torch.nn.functional.normalize(d, dim=-1)
     true = EnvironmentMap(torch.from_numpy(g["env"]).double()).lookup(d)
     scene = EnvironmentMap(torch.from_numpy(cap.envmap).double()).lookup(d @ torch.from_numpy(R).T)
     assert log_luminance_correlation(true.numpy()[None], scene.numpy()[None]) > 0.97
