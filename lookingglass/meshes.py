@@ -68,9 +68,15 @@ def body_volumes(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(B,) signed volume of each body (connected component with faces) of a closed mesh: negative
     for a body wound inward (a cavity, `wind_cavities_inward`). vertices (N, 3), faces (M, 3) int."""
     count, face_label = face_components(faces, len(vertices))
-    faces_per_label = np.bincount(face_label, minlength=count)
-    volumes = np.bincount(face_label, weights=_six_tetra_volumes(vertices, faces), minlength=count) / 6.0
+    faces_per_label, volumes = _label_faces_and_volumes(vertices, faces, count, face_label)
     return volumes[faces_per_label > 0]
+
+
+def _label_faces_and_volumes(vertices: np.ndarray, faces: np.ndarray, count: int,
+                             face_label: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(count,) faces and signed volume per label of `face_components` (0 faces: an unreferenced vertex)."""
+    faces_per_label = np.bincount(face_label, minlength=count)
+    return faces_per_label, np.bincount(face_label, weights=_six_tetra_volumes(vertices, faces), minlength=count) / 6.0
 
 
 def orient_outward(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -151,9 +157,8 @@ def largest_component(vertices: np.ndarray, faces: np.ndarray,
     count, face_label = face_components(faces, len(vertices))
     dropped = 0
     if count > 1:
-        faces_per_label = np.bincount(face_label, minlength=count)
+        faces_per_label, piece_volume = _label_faces_and_volumes(vertices, faces, count, face_label)
         keep_label = int(np.argmax(faces_per_label))
-        piece_volume = np.bincount(face_label, weights=_six_tetra_volumes(vertices, faces), minlength=count) / 6.0
         big = (faces_per_label > 0) & (np.abs(piece_volume) > min_volume)
         big[keep_label] = False
         dropped = int(big.sum())
