@@ -134,6 +134,12 @@ class RefineConfig:
                                              "doubled and 2.524 kept 128 px masks' weight at 14).", range=(0, 8))
     silhouette_views: int = setting(5, "View count at and above which the silhouette weight applies whole; with V "
                                         "fewer views it is multiplied by this / V (0: never scaled).", range=(0, None))
+    silhouette_views_thick: int = setting(10, "View count above which the silhouette weight on parts at least "
+                                              "fair_thickness thick falls as this / V on full-width masks (thin parts "
+                                              "keep all of it: the fairing shrinks them first; coarse masks keep it as "
+                                              "the plain fairing's share says; 0: never). 20 views (val480v20): CD "
+                                              "3.26 -> 3.05, the key's worst view held (docs/history.md, session 63).",
+                                          range=(0, None))
     field_blur_px: float = setting(0.0, "Gaussian blur (sigma, pixels) of the masks' signed-distance fields the "
                                         "silhouette terms pull toward, which irons out the masks' pixel staircase (0: "
                                         "none). 0.7 (edge 0.018): val480 CDN-mean 8.10 -> 7.95, worst IoU 0.981 -> "
@@ -525,23 +531,66 @@ def fair_curvature_share(config: RefineConfig, mask_width: int) -> float:
     return min(1.0, max(0.0, 2.0 * (1.0 - _width_scale(config, mask_width))))
 
 
-def fair_vertex_shares(config: RefineConfig, mask_width: int, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def thick_parts(config: RefineConfig, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(N,) how much of a thick part each vertex is: min(1, (local thickness / fair_thickness)^2),
+    1 where the shape is at least fair_thickness thick (everywhere when fair_thickness is 0)."""
+    if config.fair_thickness <= 0:
+        return np.ones(len(vertices))
+    return np.minimum(1.0, (local_thickness(vertices, faces) / config.fair_thickness) ** 2)
+
+
+def fair_vertex_shares(config: RefineConfig, mask_width: int, vertices: np.ndarray, faces: np.ndarray,
+                       thick: np.ndarray | None = None) -> np.ndarray:
     """Each vertex's share of the fairing weight: a thin part has the largest curvature, and plain
     fairing shrinks it first, so the plain share (1 - fair_curvature_share) is weakened there by
     (thickness / fair_thickness)^2; the fairing that keeps the curvature (coarse masks) does not
     shrink it and stays whole. Measured at 480 px with the fairing at 400 (session 60): the key's
-    worst view 0.9763 -> 0.9879 at 5 views, where uniform fairing took it off its masks."""
+    worst view 0.9763 -> 0.9879 at 5 views, where uniform fairing took it off its masks.
+    thick: `thick_parts` of these vertices, if already computed."""
     plain = 1.0 - fair_curvature_share(config, mask_width)
     if config.fair_thickness <= 0 or plain == 0:
         return np.ones(len(vertices))
-    thin = np.minimum(1.0, (local_thickness(vertices, faces) / config.fair_thickness) ** 2)
-    return 1.0 - plain * (1.0 - thin)
+    thick = thick_parts(config, vertices, faces) if thick is None else thick
+    return 1.0 - plain * (1.0 - thick)
+
+
+def silhouette_vertex_shares(config: RefineConfig, num_views: int, mask_width: int, vertices: np.ndarray,
+                             faces: np.ndarray, thick: np.ndarray | None = None) -> np.ndarray:
+    """Each vertex's share of the silhouette weight: 1 on thin parts, `silhouette_thick_share` on
+    thick ones (between, by `thick_parts`)."""
+    share = silhouette_thick_share(config, num_views, mask_width)
+    if share == 1.0:
+        return np.ones(len(vertices))
+    thick = thick_parts(config, vertices, faces) if thick is None else thick
+    return 1.0 - (1.0 - share) * thick
+
+
+def silhouette_thick_share(config: RefineConfig, num_views: int, mask_width: int) -> float:
+    """The thick parts' share of the silhouette weight with `num_views` masks `mask_width` pixels wide:
+    silhouette_views_thick / V above silhouette_views_thick views on full-width masks, 1 on coarse
+    ones (as the plain fairing: 1 - fair_curvature_share of the fall).
+
+    Twenty masks at the weight of ten pull the rims the networks moved in back onto the masks and drag
+    the surface behind them, which no mask holds, outward (the CAD parts' concave faces; the 20-view
+    test split's refined CD above its PNet surface's, docs/history.md session 58); all of it halved cost
+    the thin key its worst view (0.9862 -> 0.9784, session 59): the fairing shrinks a thin part first,
+    and the silhouettes hold it. Spared, the key keeps it (val480v20 from the same surfaces: CD 3.26 ->
+    3.05, the key 0.9802 -> 0.9801; session 63). At 10 views the same halving was level (val480 CD
+    4.27 -> 4.25), so 10 views and fewer keep the whole weight; on 128x96 masks (test scenes 0-4 at 20
+    views) it lowered CD (10.20 -> 7.97 on scene 0) but cost the worst view (scene 3: 0.984 -> 0.971),
+    where the weak silhouettes (0.38) already leave rims inside the masks."""
+    views = config.silhouette_views_thick
+    if not 0 < views < num_views:
+        return 1.0
+    plain = 1.0 - fair_curvature_share(config, mask_width)
+    return 1.0 - plain * (1.0 - views / num_views)
 
 
 def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.ndarray, cams: Cameras,
-                 weights: np.ndarray, config: RefineConfig, weight: float) -> _Constraints:
+                 weights: np.ndarray, config: RefineConfig, weight: float, vertex_shares: np.ndarray) -> _Constraints:
     """The silhouette constraints at `vertices` (normalized frame) from the fields' values s (V, N)
-    and gradients g (V, N, 3); weight: the terms' weight (`silhouette_weight`)."""
+    and gradients g (V, N, 3); weight: the terms' weight (`silhouette_weight`), each vertex's share of
+    it `vertex_shares` (N,) (`silhouette_vertex_shares`)."""
     gnorm = np.linalg.norm(g, axis=-1)
     usable = (gnorm > 1e-6) & (weights[:, None] > 0)
     rim = _rim(vertices, faces, s, cams, usable, config)
@@ -552,7 +601,7 @@ def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.n
     step_px = np.clip(target_px - s, -config.max_step_px, config.max_step_px)
     unit = g / np.maximum(gnorm, 1e-12)[..., None]
     r = np.where(active, step_px / np.maximum(gnorm, 1e-12), 0.0)  # world units along `unit`
-    w = np.where(active, weight * weights[:, None], 0.0)
+    w = np.where(active, weight * weights[:, None] * vertex_shares[None, :], 0.0)
     M = np.einsum("vn,vni,vnj->nij", w, unit, unit)
     b = np.einsum("vn,vn,vni->ni", w, r, unit)
     return _Constraints(M, b, rim, outside)
@@ -864,7 +913,11 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     fair, w_sil = fair_weight(config, masks.shape[2]), silhouette_weight(config, masks.shape[2], V)
     w_smooth, w_fair = config.smooth_weight * scale, fair * scale
     curvature_share = fair_curvature_share(config, masks.shape[2])
-    fair_share = fair_vertex_shares(config, masks.shape[2], x0, faces)
+    thick = None  # one ray cast for both shares, where either needs it
+    if config.fair_thickness > 0 and (curvature_share < 1 or silhouette_thick_share(config, V, masks.shape[2]) < 1):
+        thick = thick_parts(config, x0, faces)
+    fair_share = fair_vertex_shares(config, masks.shape[2], x0, faces, thick)
+    sil_share = silhouette_vertex_shares(config, V, masks.shape[2], x0, faces, thick)
     c_diag = config.damping + config.anchor_weight
     x = x0.copy()
     history = []
@@ -887,7 +940,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     # the normal term undoes most of it: ellipsoid CDN-mean 1.8 -> 4.2 degrees, session 42)
     for _ in range(config.iterations):
         s, g = field_values(fields, cams, x)
-        cons = _constraints(x, faces, s, g, cams, weights, config, w_sil)
+        cons = _constraints(x, faces, s, g, cams, weights, config, w_sil, sil_share)
         history.append({"rim": int(cons.rim.sum()), "outside": int(cons.outside.sum())})
         rhs = cons.b - lap_t @ (w_smooth * (lap @ (x - x0)) + (w_fair * fair_share)[:, None] * fair_residual(x)) \
             - config.anchor_weight * (x - x0)
@@ -899,7 +952,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         after the last."""
         nonlocal x
         s, g = field_values(fields, cams, x)
-        solve = solver.operator(_constraints(x, faces, s, g, cams, weights, config, w_sil).M,
+        solve = solver.operator(_constraints(x, faces, s, g, cams, weights, config, w_sil, sil_share).M,
                                 config.descent_cg_iterations)
         x, losses = _descend(x, x0, faces, target, solve, step * config.edge_length, iterations, growth)
         return losses
@@ -982,6 +1035,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         "view_weights": [round(float(w), 3) for w in weights],
         "silhouette_weight": round(w_sil, 4), "fair_weight": round(fair, 4),
         "fair_curvature_share": round(curvature_share, 4),
+        "silhouette_share_thick": round(silhouette_thick_share(config, V, masks.shape[2]), 4),
         **({"rerender_error": [round(mean_w(rerendered[k].error), 4) for k in ("input", "refined")],
             "rerender_error_views": {k: [round(float(e), 5) for e in r.error] for k, r in rerendered.items()}}
            if rerendered else {}),

@@ -570,3 +570,32 @@ def test_only_the_plain_fairing_is_weakened_on_thin_parts():
     keep = fair_curvature_share(config, 360)
     assert 0 < keep < 1
     assert np.allclose(fair_vertex_shares(config, 360, v, f), keep + (1 - keep) * fair_vertex_shares(config, 480, v, f))
+
+
+def test_above_ten_views_the_thick_parts_pull_less_on_full_width_masks():
+    """silhouette_vertex_shares: with V > silhouette_views_thick (10) masks at full width, a part at least
+    fair_thickness thick gets 10 / V of the silhouette weight and a thin one more, by the same
+    (thickness / fair_thickness)^2 as the fairing; 10 views and fewer, or coarse masks (where the
+    fairing keeps the curvature), keep all of it; between, the plain fairing's share of the fall."""
+    from lookingglass.refine import fair_curvature_share, silhouette_thick_share, silhouette_vertex_shares
+
+    rod = trimesh.creation.capsule(height=1.0, radius=0.05, count=[16, 16])  # diameter 0.1: half of 0.2
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.4)  # diameter 0.8
+    config = RefineConfig(fair_thickness=0.2, silhouette_views_thick=10)
+    assert silhouette_thick_share(config, 20, 480) == 0.5 and silhouette_thick_share(config, 40, 1920) == 0.25
+    assert [silhouette_thick_share(config, v, 480) for v in (5, 10)] == [1.0, 1.0]
+    assert silhouette_thick_share(config, 20, 128) == 1.0 == silhouette_thick_share(config, 20, 240)
+    plain = 1 - fair_curvature_share(config, 360)
+    assert 0 < plain < 1 and np.isclose(silhouette_thick_share(config, 20, 360), 1 - 0.5 * plain)
+    v, f = np.asarray(ball.vertices), np.asarray(ball.faces)
+    assert np.allclose(silhouette_vertex_shares(config, 20, 480, v, f), 0.5)
+    assert np.all(silhouette_vertex_shares(config, 10, 480, v, f) == 1.0)
+    assert np.all(silhouette_vertex_shares(config, 20, 128, v, f) == 1.0)
+    v, f = np.asarray(rod.vertices), np.asarray(rod.faces)
+    shares = silhouette_vertex_shares(config, 20, 480, v, f)
+    assert np.allclose(shares, 1 - 0.5 * np.minimum(1.0, (local_thickness(v, f) / 0.2) ** 2))
+    assert 0.75 < np.median(shares) < 0.9, np.median(shares)  # the rod's thickness 0.1-0.13: (0.25-0.42) of the fall
+    # without a thickness to spare, every part is thick
+    assert np.allclose(silhouette_vertex_shares(dataclasses.replace(config, fair_thickness=0.0), 20, 480, v, f), 0.5)
+    # off
+    assert silhouette_thick_share(dataclasses.replace(config, silhouette_views_thick=0), 20, 480) == 1.0
