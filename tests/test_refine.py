@@ -439,8 +439,8 @@ def test_coarse_masks_pull_less():
     width below it (a 128-pixel mask's boundary is 3.75x coarser); the fairing, which those masks then
     hold back less, as a lower power; the defaults give 128-pixel masks the weights measured there
     (0.38 and 14, with the fairing keeping the curvature: session 57). Fewer views than
-    silhouette_views pull harder."""
-    from lookingglass.refine import fair_weight, silhouette_weight
+    silhouette_views pull harder, and on coarse masks fewer than silhouette_views_coarse."""
+    from lookingglass.refine import fair_curvature_share, fair_weight, silhouette_weight
 
     config = RefineConfig(silhouette_weight=2.0, silhouette_width_power=2.0, silhouette_views=10)
     assert silhouette_weight(config, 480) == silhouette_weight(config, 1920) == 2.0
@@ -453,6 +453,15 @@ def test_coarse_masks_pull_less():
     assert silhouette_weight(config, 480, 5) == pytest.approx(4.0, rel=1e-12)
     assert silhouette_weight(config, 480, 10) == silhouette_weight(config, 480, 20) == 2.0
     assert silhouette_weight(dataclasses.replace(config, silhouette_views=0), 480, 5) == 2.0
+    # on coarse masks (the fairing keeps the curvature there) the threshold is silhouette_views_coarse;
+    # between, the two factors blend as the fairing does
+    coarse = dataclasses.replace(config, silhouette_views=5, silhouette_views_coarse=10)
+    assert silhouette_weight(coarse, 480, 5) == 2.0 and silhouette_weight(coarse, 480, 4) == pytest.approx(2.5)
+    assert silhouette_weight(coarse, 128, 5) == pytest.approx(2 * silhouette_weight(coarse, 128, 10), rel=1e-12)
+    assert silhouette_weight(coarse, 128, 20) == silhouette_weight(coarse, 128, 10)
+    share = fair_curvature_share(coarse, 360)
+    assert 0 < share < 1 and silhouette_weight(coarse, 360, 5) == pytest.approx(
+        (1 + share) * silhouette_weight(coarse, 360, 10), rel=1e-12)
     default = RefineConfig()
     assert fair_weight(default, 480) == fair_weight(default, 1000) == default.fair_weight
     assert fair_weight(default, 240) == pytest.approx(default.fair_weight * 0.5 ** default.fair_width_power, rel=1e-12)
