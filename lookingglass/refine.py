@@ -143,7 +143,7 @@ class RefineConfig:
                                               "fair_thickness thick falls as this / V on full-width masks (thin parts "
                                               "keep all of it: the fairing shrinks them first; coarse masks keep it as "
                                               "the plain fairing's share says; 0: never). 20 views (val480v20): CD "
-                                              "3.26 -> 3.05, the key's worst view held (docs/history.md, session 63).",
+                                              "3.26 -> 3.14, the key's worst view held (docs/history.md, session 63).",
                                           range=(0, None))
     field_blur_px: float = setting(0.0, "Gaussian blur (sigma, pixels) of the masks' signed-distance fields the "
                                         "silhouette terms pull toward, which irons out the masks' pixel staircase (0: "
@@ -586,9 +586,9 @@ def silhouette_thick_share(config: RefineConfig, num_views: int, mask_width: int
     the surface behind them, which no mask holds, outward (the CAD parts' concave faces; the 20-view
     test split's refined CD above its PNet surface's, docs/history.md session 58); all of it halved cost
     the thin key its worst view (0.9862 -> 0.9784, session 59): the fairing shrinks a thin part first,
-    and the silhouettes hold it. Spared, the key keeps it (val480v20 from the same surfaces: CD 3.26 ->
-    3.05, the key 0.9802 -> 0.9801; session 63). At 10 views the same halving was level (val480 CD
-    4.27 -> 4.25), so 10 views and fewer keep the whole weight; on 128x96 masks (test scenes 0-4 at 20
+    and the silhouettes hold it. Spared, the key keeps it (`validate` on val480v20: CD 3.26 -> 3.14,
+    CDN-mean 5.84 -> 5.79, the key's worst view 0.9803; session 63). At 10 views the same halving was
+    level (val480 from the same surfaces: CD 4.28 -> 4.23, CDN-mean 7.69 -> 7.73), so 10 views and fewer keep the whole weight; on 128x96 masks (test scenes 0-4 at 20
     views) it lowered CD (10.20 -> 7.97 on scene 0) but cost the worst view (scene 3: 0.984 -> 0.971),
     where the weak silhouettes (0.38) already leave rims inside the masks."""
     views = config.silhouette_views_thick
