@@ -8,10 +8,12 @@ surface (capture frame, closed) and, in the hull-normalized frame (max |p| = 1):
 2. runs a few outer iterations, each of which linearizes the silhouette terms at the current
    vertices and solves one sparse linear least-squares problem for the vertex displacements
    (preconditioned conjugate gradients, numpy/scipy):
-   - **silhouette** (per view v, weight w_v): each *rim* vertex (on the contour generator and on
-     the outer boundary of the mesh's own silhouette: a ray passing one pixel outside it misses the
-     mesh) is pulled onto the mask's boundary, s_v(x) = 0, with s_v the signed distance to the
-     mask boundary in pixels (+ inside; `hull.silhouette_fields`, bilinear). Linearized, that is
+   - **silhouette** (per view v, weight w_v, scaled with the masks' width and the view count, and
+     above 10 views lower on thick parts: `silhouette_weight`, `silhouette_vertex_shares`): each
+     *rim* vertex (on the contour generator and on the outer boundary of the mesh's own silhouette:
+     a ray passing one pixel outside it misses the mesh) is pulled onto the mask's boundary,
+     s_v(x) = 0, with s_v the signed distance to the mask boundary in pixels (+ inside;
+     `hull.silhouette_fields`, bilinear). Linearized, that is
      the plane constraint g.(x - x_k) = -s with g = grad_x s_v(project_v(x)), which lies in the
      plane perpendicular to the viewing ray: a vertex moves across the line of sight only. A rim
      vertex inside the mask pushes the silhouette out (mask pixels left uncovered), one outside
@@ -136,13 +138,14 @@ class RefineConfig:
                                         "full-width masks; with V fewer views it is multiplied by this / V (0: never "
                                         "scaled).", range=(0, None))
     silhouette_views_coarse: int = setting(10, "The same on coarse masks (those whose fairing keeps the curvature: "
-                                               "fair_curvature_share; between, blended). 10 against 5: the 5-view test "
+                                               "coarse_share; between, blended). 10 against 5: the 5-view test "
                                                "split (128x96) with every view >= 0.98 on 6 -> 9 of scenes 0-9, CD +1%, "
                                                "CDN-mean +2% (docs/history.md, session 63).", range=(0, None))
     silhouette_views_thick: int = setting(10, "View count above which the silhouette weight on parts at least "
-                                              "fair_thickness thick falls as this / V on full-width masks (thin parts "
-                                              "keep all of it: the fairing shrinks them first; coarse masks keep it as "
-                                              "the plain fairing's share says; 0: never). 20 views (val480v20): CD "
+                                              "fair_thickness thick falls as this / V on full-width masks (thinner "
+                                              "parts keep more, as (thickness / fair_thickness)^2 says: the fairing "
+                                              "shrinks them first; coarse masks keep all of it: coarse_share; 0: "
+                                              "never). 20 views (val480v20): CD "
                                               "3.26 -> 3.14, the key's worst view held (docs/history.md, session 63).",
                                           range=(0, None))
     field_blur_px: float = setting(0.0, "Gaussian blur (sigma, pixels) of the masks' signed-distance fields the "
@@ -159,7 +162,8 @@ class RefineConfig:
     fair_thickness: float = setting(0.2, "Local thickness (shape diameter, hull-normalized frame) below which the plain "
                                          "fairing weakens as (thickness / this)^2: a thin part shrinks under it first "
                                          "(0: uniform fairing; the fairing that keeps the curvature, on coarse masks, "
-                                         "does not shrink it and is not weakened; 0 until session 60).",
+                                         "does not shrink it and is not weakened; 0 until session 60). Also the "
+                                         "thickness above which silhouette_views_thick acts (0: on every part).",
                                     range=(0, None))
     fair_curvature_rings: int = setting(8, "Neighbour-averaging steps that make the fairing's target: each iteration "
                                            "the fairing pulls the Laplacian of the positions toward itself averaged "
@@ -482,7 +486,10 @@ def _width_scale(config: RefineConfig, mask_width: int) -> float:
 def silhouette_weight(config: RefineConfig, mask_width: int, num_views: int | None = None) -> float:
     """The silhouette terms' weight for `num_views` masks `mask_width` pixels wide:
     config.silhouette_weight, scaled by (mask_width / silhouette_width)^silhouette_width_power below
-    silhouette_width and by silhouette_views / num_views below silhouette_views views.
+    silhouette_width and by silhouette_views / num_views below silhouette_views views on full-width
+    masks, silhouette_views_coarse / num_views below that many on coarse ones (blended by
+    coarse_share). Above silhouette_views_thick views the thick parts' share of it falls too
+    (silhouette_vertex_shares).
 
     Width: a coarse mask's boundary is off by up to half a pixel, a larger share of the object, and a
     rim pulled onto it takes its neighbourhood along. On scenes 1-6 of the 10-view test split
@@ -510,7 +517,7 @@ def silhouette_weight(config: RefineConfig, mask_width: int, num_views: int | No
     def few(threshold: int) -> float:
         return threshold / num_views if num_views and threshold > num_views else 1.0
 
-    coarse = fair_curvature_share(config, mask_width)
+    coarse = coarse_share(config, mask_width)
     views = (1.0 - coarse) * few(config.silhouette_views) + coarse * few(config.silhouette_views_coarse)
     return config.silhouette_weight * _width_scale(config, mask_width) ** config.silhouette_width_power * views
 
@@ -540,6 +547,13 @@ def fair_curvature_share(config: RefineConfig, mask_width: int) -> float:
     shaft's CD 4.23 -> 5.70 keeping the curvature over 4 rings; docs/history.md, session 57)."""
     if config.fair_curvature_rings == 0:
         return 0.0
+    return coarse_share(config, mask_width)
+
+
+def coarse_share(config: RefineConfig, mask_width: int) -> float:
+    """How coarse masks `mask_width` pixels wide are, for the settings that differ on coarse masks (the
+    fairing that keeps the curvature, silhouette_views_coarse, silhouette_views_thick): 1 at half
+    silhouette_width and below, 0 at silhouette_width and above, linear between."""
     return min(1.0, max(0.0, 2.0 * (1.0 - _width_scale(config, mask_width))))
 
 
@@ -568,8 +582,8 @@ def fair_vertex_shares(config: RefineConfig, mask_width: int, vertices: np.ndarr
 
 def silhouette_vertex_shares(config: RefineConfig, num_views: int, mask_width: int, vertices: np.ndarray,
                              faces: np.ndarray, thick: np.ndarray | None = None) -> np.ndarray:
-    """Each vertex's share of the silhouette weight: 1 on thin parts, `silhouette_thick_share` on
-    thick ones (between, by `thick_parts`)."""
+    """Each vertex's share of the silhouette weight: `silhouette_thick_share` on parts at least
+    fair_thickness thick, more on thinner ones, 1 - (1 - that share) x `thick_parts`."""
     share = silhouette_thick_share(config, num_views, mask_width)
     if share == 1.0:
         return np.ones(len(vertices))
@@ -580,7 +594,7 @@ def silhouette_vertex_shares(config: RefineConfig, num_views: int, mask_width: i
 def silhouette_thick_share(config: RefineConfig, num_views: int, mask_width: int) -> float:
     """The thick parts' share of the silhouette weight with `num_views` masks `mask_width` pixels wide:
     silhouette_views_thick / V above silhouette_views_thick views on full-width masks, 1 on coarse
-    ones (as the plain fairing: 1 - fair_curvature_share of the fall).
+    ones (1 - coarse_share of the fall between). It weakens both silhouette terms (rim and outside).
 
     Twenty masks at the weight of ten pull the rims the networks moved in back onto the masks and drag
     the surface behind them, which no mask holds, outward (the CAD parts' concave faces; the 20-view
@@ -588,14 +602,14 @@ def silhouette_thick_share(config: RefineConfig, num_views: int, mask_width: int
     the thin key its worst view (0.9862 -> 0.9784, session 59): the fairing shrinks a thin part first,
     and the silhouettes hold it. Spared, the key keeps it (`validate` on val480v20: CD 3.26 -> 3.14,
     CDN-mean 5.84 -> 5.79, the key's worst view 0.9803; session 63). At 10 views the same halving was
-    level (val480 from the same surfaces: CD 4.28 -> 4.23, CDN-mean 7.69 -> 7.73), so 10 views and fewer keep the whole weight; on 128x96 masks (test scenes 0-4 at 20
-    views) it lowered CD (10.20 -> 7.97 on scene 0) but cost the worst view (scene 3: 0.984 -> 0.971),
-    where the weak silhouettes (0.38) already leave rims inside the masks."""
+    level (val480 from the same surfaces: CD 4.28 -> 4.23, CDN-mean 7.69 -> 7.73), so 10 views and
+    fewer keep the whole weight; on 128x96 masks (test scenes 0-4 at 20 views) it lowered CD (10.20 ->
+    7.97 on scene 0) but cost the worst view (scene 3: 0.984 -> 0.971), where the weak silhouettes
+    (0.38) already leave rims inside the masks."""
     views = config.silhouette_views_thick
     if not 0 < views < num_views:
         return 1.0
-    plain = 1.0 - fair_curvature_share(config, mask_width)
-    return 1.0 - plain * (1.0 - views / num_views)
+    return 1.0 - (1.0 - coarse_share(config, mask_width)) * (1.0 - views / num_views)
 
 
 def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.ndarray, cams: Cameras,

@@ -608,3 +608,34 @@ def test_above_ten_views_the_thick_parts_pull_less_on_full_width_masks():
     assert np.allclose(silhouette_vertex_shares(dataclasses.replace(config, fair_thickness=0.0), 20, 480, v, f), 0.5)
     # off
     assert silhouette_thick_share(dataclasses.replace(config, silhouette_views_thick=0), 20, 480) == 1.0
+
+
+def test_the_thick_parts_share_reaches_the_silhouette_constraints(scene, monkeypatch):
+    """The per-vertex shares scale each vertex's summed constraint (M, b) and nothing else, and
+    `refine_surface` hands the constraints `silhouette_vertex_shares` of its remeshed start, in the
+    silhouette iterations and in the normal term's smoothing solve alike; report.json says the share."""
+    import lookingglass.refine as refine
+    from lookingglass.hull import silhouette_fields
+
+    gt, cameras, masks, hull = scene
+    cams = hull.cameras_normalized(cameras).to(device="cpu", dtype=torch.float32)
+    fields = torch.as_tensor(silhouette_fields(masks, 0.0))
+    x = hull.normalize_points(lumpy_shrunken(gt).vertices)
+    s, g = refine.field_values(fields, cams, x)
+    weights = np.ones(len(masks))
+    shares = np.random.default_rng(0).uniform(0.1, 1.0, len(x))
+    whole = refine._constraints(x, np.asarray(gt.faces), s, g, cams, weights, CONFIG, 2.0, np.ones(len(x)))
+    part = refine._constraints(x, np.asarray(gt.faces), s, g, cams, weights, CONFIG, 2.0, shares)
+    assert whole.rim.any() and np.array_equal(whole.rim, part.rim) and np.array_equal(whole.outside, part.outside)
+    assert np.allclose(part.M, whole.M * shares[:, None, None]) and np.allclose(part.b, whole.b * shares[:, None])
+
+    seen = []
+    original = refine._constraints
+    monkeypatch.setattr(refine, "_constraints", lambda *a: seen.append(a[-1]) or original(*a))
+    # 5 "thick" views below 10: a share of 1 - (1 - 5 / 10) x (1 - coarse_share) at 320 px, on every
+    # part (no thickness to spare)
+    config = dataclasses.replace(CONFIG, iterations=2, silhouette_views_thick=5, fair_thickness=0.0)
+    result = refine_surface(lumpy_shrunken(gt), hull, masks, cameras, config)
+    share = refine.silhouette_thick_share(config, len(masks), masks.shape[2])
+    assert 0.5 < share < 1 and result.report["silhouette_share_thick"] == pytest.approx(share, abs=1e-4)
+    assert len(seen) == 2 and all(np.allclose(v, share) for v in seen)
