@@ -137,16 +137,16 @@ class RefineConfig:
     silhouette_views: int = setting(5, "View count at and above which the silhouette weight applies whole on "
                                         "full-width masks; with V fewer views it is multiplied by this / V (0: never "
                                         "scaled).", range=(0, None))
-    silhouette_views_coarse: int = setting(10, "The same on coarse masks (those whose fairing keeps the curvature: "
-                                               "coarse_share; between, blended). 10 against 5: the 5-view test "
+    silhouette_views_coarse: int = setting(10, "The same on coarse masks (coarse_share: half silhouette_width wide and "
+                                               "narrower; between, blended). 10 against 5: the 5-view test "
                                                "split (128x96) with every view >= 0.98 on 6 -> 9 of scenes 0-9, CD +1%, "
                                                "CDN-mean +2% (docs/history.md, session 63).", range=(0, None))
     silhouette_views_thick: int = setting(10, "View count above which the silhouette weight on parts at least "
                                               "fair_thickness thick falls as this / V on full-width masks (thinner "
                                               "parts keep more, as (thickness / fair_thickness)^2 says: the fairing "
                                               "shrinks them first; coarse masks keep all of it: coarse_share; 0: "
-                                              "never). 20 views (val480v20): CD "
-                                              "3.26 -> 3.14, the key's worst view held (docs/history.md, session 63).",
+                                              "never). 20 views (val480v20): CD 3.26 -> 3.14, the key's worst view "
+                                              "held (docs/history.md, session 63).",
                                           range=(0, None))
     field_blur_px: float = setting(0.0, "Gaussian blur (sigma, pixels) of the masks' signed-distance fields the "
                                         "silhouette terms pull toward, which irons out the masks' pixel staircase (0: "
