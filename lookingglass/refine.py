@@ -939,9 +939,10 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     fair, w_sil = fair_weight(config, masks.shape[2]), silhouette_weight(config, masks.shape[2], V)
     w_smooth, w_fair = config.smooth_weight * scale, fair * scale
     curvature_share = fair_curvature_share(config, masks.shape[2])
-    thick = None  # one ray cast for both shares, where either needs it
-    if config.fair_thickness > 0 and (curvature_share < 1 or silhouette_thick_share(config, V, masks.shape[2]) < 1):
-        thick = thick_parts(config, x0, faces)
+    thick_share = silhouette_thick_share(config, V, masks.shape[2])
+    # one ray cast for both per-vertex shares, where either needs it
+    thick = thick_parts(config, x0, faces) if config.fair_thickness > 0 and min(curvature_share, thick_share) < 1 \
+        else None
     fair_share = fair_vertex_shares(config, masks.shape[2], x0, faces, thick)
     sil_share = silhouette_vertex_shares(config, V, masks.shape[2], x0, faces, thick)
     c_diag = config.damping + config.anchor_weight
@@ -1061,7 +1062,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         "view_weights": [round(float(w), 3) for w in weights],
         "silhouette_weight": round(w_sil, 4), "fair_weight": round(fair, 4),
         "fair_curvature_share": round(curvature_share, 4),
-        "silhouette_share_thick": round(silhouette_thick_share(config, V, masks.shape[2]), 4),
+        "silhouette_share_thick": round(thick_share, 4),
         **({"rerender_error": [round(mean_w(rerendered[k].error), 4) for k in ("input", "refined")],
             "rerender_error_views": {k: [round(float(e), 5) for e in r.error] for k, r in rerendered.items()}}
            if rerendered else {}),
