@@ -33,7 +33,12 @@ surface (capture frame, closed) and, in the hull-normalized frame (max |p| = 1):
    may fall within `keep_tolerance` only where the refined mesh re-renders the photos better by more
    than 1%: the keep check's re-rendering, last paragraph below; and the worst view),
    and, on the remeshed connectivity, the roughness (Laplacian) and fold-overs.
-   report.json says which mesh was kept and why.
+   report.json says which mesh was kept and why;
+5. where a view of full weight is still below `silhouette_iou_target` (0.98), reruns 1-4 from the
+   input with that view's silhouette weight tripled, up to `silhouette_retries` times (a penalty
+   method on the views: on 128x96 masks the silhouette weight must be weak against the fairing, and
+   some views' rims stay ~0.5 px inside their masks), and returns the round whose kept mesh matches
+   its worst view best (report.json: `silhouette_rounds`, `silhouette_round`).
 
 A view whose mask the visual hull covers poorly (`VisualHull.view_coverage`: a stray blob, a
 mask of something else, a cut-off object) disagrees with the other views; it is down-weighted
@@ -911,7 +916,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     (called once, on the mesh after the silhouette iterations: the second pass; it returns None
     for a net without a gain head), or a `NormalStageResult` made elsewhere; the term is skipped
     without, or when the net has no gain head. Returns the kept mesh (the better of the refined one
-    and the input) and the report. Warns (warnings.warn) for every down-weighted view, named by
+    and the input) and the report, of the round (`silhouette_retries`) whose kept mesh matches its
+    worst view best. Warns (warnings.warn) for every down-weighted view, named by
     `view_names` (V,) when given (its mask file)."""
     config = config or RefineConfig()
     start_time = time.perf_counter()

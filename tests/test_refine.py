@@ -179,12 +179,40 @@ def test_a_surface_far_short_of_a_mask_is_pulled_out(scene):
     cut = gt.copy()
     cut.vertices = np.column_stack([np.minimum(gt.vertices[:, 0], 0.62), gt.vertices[:, 1:]])
     assert silhouette_iou(cut, cameras, masks).min() < 0.87
-    config = dataclasses.replace(CONFIG, rerender_width=0)
+    config = dataclasses.replace(CONFIG, rerender_width=0, silhouette_retries=0)  # one round: the band's own reach
     assert config.band_px == 24
     worst = {band: silhouette_iou(refine_surface(cut, hull, masks, cameras,
                                                  dataclasses.replace(config, band_px=band)).refined,
                                   cameras, masks).min() for band in (12.0, config.band_px)}
     assert worst[config.band_px] >= 0.94 and worst[12.0] < worst[config.band_px] - 0.01, worst
+
+
+def test_views_still_short_of_their_masks_pull_harder_in_another_round(scene):
+    """A penalty method on the views (`silhouette_retries`): with a silhouette weight too weak for the
+    fairing (1 against the default 20, as on coarse masks), the shrunken, lumpy ellipsoid keeps views
+    below the IoU target after one round (measured: worst 0.976); rerun from the input with those
+    views' silhouette weight tripled, every view reaches it (0.984), and the round whose kept mesh
+    matches its worst view best is returned, each round's factors in report.json."""
+    gt, cameras, masks, hull = scene
+    start = lumpy_shrunken(gt)
+    config = dataclasses.replace(CONFIG, rerender_width=0, silhouette_weight=1.0)
+    assert config.silhouette_retries == 2 and config.silhouette_retry_factor == 3
+    one = refine_surface(start, hull, masks, cameras, dataclasses.replace(config, silhouette_retries=0))
+    iou_one = silhouette_iou(one.mesh, cameras, masks)
+    assert iou_one.min() < config.silhouette_iou_target and "silhouette_rounds" not in one.report
+    more = refine_surface(start, hull, masks, cameras, config)
+    rounds = more.report["silhouette_rounds"]
+    assert 2 <= len(rounds) <= 3
+    # the first round is the one-round run; the next triples the views that run left short
+    assert rounds[0]["worst_iou"] == pytest.approx(iou_one.min(), abs=1e-4)
+    np.testing.assert_array_equal(rounds[0]["boost"], 1.0)
+    np.testing.assert_array_equal(rounds[1]["boost"], np.where(iou_one < config.silhouette_iou_target, 3.0, 1.0))
+    worst = [r["worst_iou"] for r in rounds]
+    assert more.report["silhouette_round"] == int(np.argmax(worst))
+    iou_more = silhouette_iou(more.mesh, cameras, masks)
+    assert iou_more.min() == pytest.approx(max(worst), abs=1e-4)
+    assert iou_more.min() >= config.silhouette_iou_target, (iou_one.min(), worst)
+    assert more.report["kept"] == "refined" and more.mesh.is_watertight
 
 
 def test_a_view_with_a_stray_blob_is_down_weighted_and_named(scene):
@@ -206,6 +234,7 @@ def test_a_view_with_a_stray_blob_is_down_weighted_and_named(scene):
     weights = result.view_weights
     assert weights[4] < 0.7 and np.all(np.delete(weights, 4) == 1), weights
     assert result.report["down_weighted_views"] == [4]
+    assert "silhouette_rounds" not in result.report  # a disagreeing view's mask is not pushed harder
     # the other views are still explained, and the blob did not drag the mesh out to it
     iou = silhouette_iou(result.mesh, cameras, masks)
     assert np.delete(iou, 4).min() >= 0.98 and iou[4] >= 0.98, iou
