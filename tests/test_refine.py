@@ -29,8 +29,9 @@ from lookingglass.refine import (RefineConfig, carve_by_hull, local_thickness, r
 from lookingglass.render.raycast import object_masks
 from lookingglass.render.tracer import RenderConfig, render_views, trace_two_bounce
 
-# a coarser surface than the default (0.018) keeps the tests fast; the method is the same
-CONFIG = RefineConfig(edge_length=0.035)
+# a coarser surface than the default (0.018) keeps the tests fast; the method is the same. One round:
+# the tests measure what a round does (the penalty rounds, `silhouette_retries`, have their own test)
+CONFIG = RefineConfig(edge_length=0.035, silhouette_retries=0)
 
 
 def ellipsoid_scene(width: int = 320, height: int = 240):
@@ -179,7 +180,7 @@ def test_a_surface_far_short_of_a_mask_is_pulled_out(scene):
     cut = gt.copy()
     cut.vertices = np.column_stack([np.minimum(gt.vertices[:, 0], 0.62), gt.vertices[:, 1:]])
     assert silhouette_iou(cut, cameras, masks).min() < 0.87
-    config = dataclasses.replace(CONFIG, rerender_width=0, silhouette_retries=0)  # one round: the band's own reach
+    config = dataclasses.replace(CONFIG, rerender_width=0)
     assert config.band_px == 24
     worst = {band: silhouette_iou(refine_surface(cut, hull, masks, cameras,
                                                  dataclasses.replace(config, band_px=band)).refined,
@@ -195,8 +196,9 @@ def test_views_still_short_of_their_masks_pull_harder_in_another_round(scene):
     matches its worst view best is returned, each round's factors in report.json."""
     gt, cameras, masks, hull = scene
     start = lumpy_shrunken(gt)
-    config = dataclasses.replace(CONFIG, rerender_width=0, silhouette_weight=1.0)
-    assert config.silhouette_retries == 2 and config.silhouette_retry_factor == 3
+    defaults = RefineConfig()
+    assert defaults.silhouette_retries == 2 and defaults.silhouette_retry_factor == 3
+    config = dataclasses.replace(CONFIG, rerender_width=0, silhouette_weight=1.0, silhouette_retries=2)
     one = refine_surface(start, hull, masks, cameras, dataclasses.replace(config, silhouette_retries=0))
     iou_one = silhouette_iou(one.mesh, cameras, masks)
     assert iou_one.min() < config.silhouette_iou_target and "silhouette_rounds" not in one.report
