@@ -939,9 +939,10 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     # view best is returned. Views whose masks disagree with the others (weight < 1) are not pushed.
     boost = np.ones(V)
     rounds, best, best_worst = [], None, -1.0
+    start: dict = {}  # what every round starts from (filled by the first)
     trusted = weights >= 1
     for index in range(config.silhouette_retries + 1):
-        result = _refine_once(mesh, hull, masks, cameras, config, weights, boost, capture, normals)
+        result = _refine_once(mesh, hull, masks, cameras, config, weights, boost, capture, normals, start)
         iou = cast_iou(result.casts, masks)
         worst = float(iou[trusted].min()) if trusted.any() else 1.0
         rounds.append({"boost": [round(float(b), 3) for b in boost], "kept": result.report["kept"],
@@ -959,24 +960,34 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
 
 
 def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cameras: Cameras,
-                 config: RefineConfig, weights: np.ndarray, boost: np.ndarray, capture, normals) -> RefineResult:
+                 config: RefineConfig, weights: np.ndarray, boost: np.ndarray, capture, normals,
+                 start: dict) -> RefineResult:
     """One run of the refine stage from `mesh` (`refine_surface`'s arguments); weights: the views'
     weights (the measures and the silhouette terms), boost: (V,) each view's silhouette terms' factor
-    on top of it."""
+    on top of it. start: what does not depend on the round (the remeshed input, the fields, the
+    thickness, the photos, the input's silhouettes and re-rendering), made by the first round and
+    reused by the others."""
+
+    def once(key: str, make):
+        if key not in start:
+            start[key] = make()
+        return start[key]
+
     start_time = time.perf_counter()
     V = len(masks)
     pull = weights * boost  # the silhouette terms' view weights; the measures keep `weights`
     timings = {}
     t = time.perf_counter()
-    unit = trimesh.Trimesh(hull.normalize_points(mesh.vertices), np.asarray(mesh.faces), process=False)
-    even = remesh_even(unit, config.edge_length, config.remesh_iterations)
+    even = once("remeshed", lambda: remesh_even(trimesh.Trimesh(hull.normalize_points(mesh.vertices),
+                                                                np.asarray(mesh.faces), process=False),
+                                                config.edge_length, config.remesh_iterations))
     faces = np.asarray(even.faces, np.int64)
     x0 = np.asarray(even.vertices, np.float64)
     timings["remesh"] = time.perf_counter() - t
 
     t = time.perf_counter()
     cams = hull.cameras_normalized(cameras).to(device="cpu", dtype=torch.float32)
-    fields = torch.as_tensor(silhouette_fields(masks, config.field_blur_px))
+    fields = once("fields", lambda: torch.as_tensor(silhouette_fields(masks, config.field_blur_px)))
     lap = uniform_laplacian(faces, len(x0))
     lap_t = lap.T.tocsr()
     before = _terms(x0, faces, fields, cams, lap, weights, config)
@@ -989,8 +1000,8 @@ def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cam
     curvature_share = fair_curvature_share(config, masks.shape[2])
     thick_share = silhouette_thick_share(config, V, masks.shape[2])
     # one ray cast for both per-vertex shares, where either needs it
-    thick = thick_parts(config, x0, faces) if config.fair_thickness > 0 and min(curvature_share, thick_share) < 1 \
-        else None
+    thick = once("thick", lambda: thick_parts(config, x0, faces)
+                 if config.fair_thickness > 0 and min(curvature_share, thick_share) < 1 else None)
     fair_share = fair_vertex_shares(config, masks.shape[2], x0, faces, thick)
     sil_share = silhouette_vertex_shares(config, V, masks.shape[2], x0, faces, thick)
     c_diag = config.damping + config.anchor_weight
@@ -1033,7 +1044,8 @@ def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cam
         return losses
 
     mean_w = lambda a: weighted_mean(a, weights)  # noqa: E731
-    prepared = photos_at(capture, config.rerender_width) if capture is not None and config.rerender_width > 0 else None
+    prepared = once("photos", lambda: photos_at(capture, config.rerender_width)
+                    if capture is not None and config.rerender_width > 0 else None)
     rerendered: dict = {}
     normal_report: dict = {}
     if config.normal_iterations and normals is not None:
@@ -1079,7 +1091,7 @@ def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cam
     after = _terms(x, faces, fields, cams, lap, weights, config)
     folds = fold_overs(x0, x, faces)
     refined = trimesh.Trimesh(hull.denormalize_points(x), faces, process=False)
-    cast_in, cast_out = object_masks(mesh, cameras), object_masks(refined, cameras)
+    cast_in, cast_out = once("input_casts", lambda: object_masks(mesh, cameras)), object_masks(refined, cameras)
     iou_in, iou_out = cast_iou(cast_in, masks), cast_iou(cast_out, masks)
     carve_report: dict = {}
     if config.hull_carve:
@@ -1091,7 +1103,8 @@ def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cam
             rerendered.pop("refined", None)  # re-rendered below, carved
     rr = None
     if prepared is not None:
-        rerendered["input"] = rerender(mesh, capture, prepared=prepared, samples_per_axis=config.rerender_samples)
+        rerendered["input"] = once("input_rerendering", lambda: rerender(mesh, capture, prepared=prepared,
+                                                                         samples_per_axis=config.rerender_samples))
         if "refined" not in rerendered or photo_losses:
             rerendered["refined"] = rerender(refined, capture, prepared=prepared,
                                                 samples_per_axis=config.rerender_samples)
