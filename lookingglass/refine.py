@@ -159,6 +159,10 @@ class RefineConfig:
                                          "round whose worst view is best is kept (0: one round). Test split at 128x96, "
                                          "10 views, 14 of the 15 scenes below 0.98 reach it (docs/history.md, "
                                          "session 64).", range=(0, 10))
+    silhouette_round_gain: float = setting(0.001, "A round whose worst view (its kept mesh's) is not above the best "
+                                                  "round's by more than this ends the rounds: pushing harder did not "
+                                                  "help (the 5-view test scene 35 kept its input in three rounds).",
+                                           range=(0, 1))
     silhouette_retry_factor: float = setting(3.0, "What each of silhouette_retries' rounds multiplies a short view's "
                                                   "silhouette weight by (3: 3 x, then 9 x).", range=(1, 100))
     silhouette_iou_target: float = setting(0.98, "The silhouette IoU below which a view pulls harder in the next "
@@ -947,14 +951,17 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         worst = float(iou[trusted].min()) if trusted.any() else 1.0
         rounds.append({"boost": [round(float(b), 3) for b in boost], "kept": result.report["kept"],
                        "worst_iou": round(worst, 4), "seconds": result.report["seconds"]})
+        stalled = index > 0 and worst <= best_worst + config.silhouette_round_gain
         if worst > best_worst:
             best, best_worst, best_index = result, worst, index
         short = trusted & (iou < config.silhouette_iou_target)
-        if not short.any():
+        ended = "target met" if not short.any() else "stalled" if stalled else None
+        if ended:
             break
         boost = np.where(short, boost * config.silhouette_retry_factor, boost)
     if len(rounds) > 1:
-        best.report.update(silhouette_rounds=rounds, silhouette_round=best_index)
+        best.report.update(silhouette_rounds=rounds, silhouette_round=best_index,
+                           silhouette_rounds_ended=ended or "rounds spent")
     best.report["seconds"] = round(time.perf_counter() - start_time, 2)
     return best
 

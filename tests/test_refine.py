@@ -215,6 +215,22 @@ def test_views_still_short_of_their_masks_pull_harder_in_another_round(scene):
     assert iou_more.min() == pytest.approx(max(worst), abs=1e-4)
     assert iou_more.min() >= config.silhouette_iou_target, (iou_one.min(), worst)
     assert more.report["kept"] == "refined" and more.mesh.is_watertight
+    assert more.report["silhouette_rounds_ended"] == "target met"
+
+
+def test_rounds_that_do_not_help_end_early(scene):
+    """A round whose worst view is no better than the best round's ends the rounds (`silhouette_round_gain`):
+    with no silhouette pull at all (weight 0, so no factor changes anything), the fairing leaves the
+    shrunken ellipsoid short of its masks in every round, and a second round that matches the first
+    is the last, not one of three."""
+    gt, cameras, masks, hull = scene
+    config = dataclasses.replace(CONFIG, rerender_width=0, silhouette_weight=0.0, silhouette_retries=2)
+    result = refine_surface(lumpy_shrunken(gt), hull, masks, cameras, config)
+    rounds = result.report["silhouette_rounds"]
+    assert len(rounds) == 2 and result.report["silhouette_rounds_ended"] == "stalled", rounds
+    assert rounds[0]["worst_iou"] < config.silhouette_iou_target
+    assert rounds[1]["worst_iou"] == pytest.approx(rounds[0]["worst_iou"], abs=config.silhouette_round_gain)
+    assert result.report["silhouette_round"] == 0
 
 
 def test_a_view_with_a_stray_blob_is_down_weighted_and_named(scene):

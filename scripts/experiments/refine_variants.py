@@ -55,3 +55,5 @@ for i in map(int, sys.argv[2].split(",")):
               "term", term.get("trusted_share"), term.get("kept"),
               "rerender", result.report.get("rerender_error"), "iou_mean", result.report["silhouette_iou_mean"],
               result.report.get("kept_why", ""), flush=True)
+        for r in result.report.get("silhouette_rounds", []):
+            print("   round", r["kept"], r["worst_iou"], r["seconds"], flush=True)
