@@ -99,6 +99,8 @@ def test_reconstruct_and_eval_shapes_give_the_same_mesh(scene, tmp_path):
         # from call to call and the refine stage grew that: refined Metro 12.11 / 13.10 over two runs)
         assert record["refined"][metric] == pytest.approx(ours_refined[metric], rel=2e-2), metric
     assert record["refined"]["kept"] == refine["kept"]
+    assert record["refined"]["rounds"] == len(refine.get("silhouette_rounds", [None]))
+    assert record["refined"]["round"] == refine.get("silhouette_round", 0)
     # the kept mesh's worst view, as the refine stage reported it
     chosen = refine["silhouette_iou_after" if refine["kept"] == "refined" else "silhouette_iou_before"]
     assert record["refined"]["iou_min"] == pytest.approx(min(chosen), abs=5e-3)

@@ -116,6 +116,10 @@ class _ShapeEvaluation:
                     refined = refine_stage(capture, hull, mesh, self.weights, self.refine, self.device)
                     record["refined"] = {**self._scored(refined.mesh, gt, capture), "kept": refined.report["kept"],
                                          "iou_mean_input_refined": refined.report["silhouette_iou_mean"],
+                                         # the penalty rounds run and the one returned, and what they cost
+                                         "rounds": len(refined.report.get("silhouette_rounds", [None])),
+                                         "round": refined.report.get("silhouette_round", 0),
+                                         "seconds": refined.report["seconds"],
                                          **({"kept_why": refined.report["kept_why"]}
                                             if "kept_why" in refined.report else {})}
         return record
