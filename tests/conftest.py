@@ -22,6 +22,17 @@ for variable in THREAD_VARIABLES:
 SHARED = Path(__file__).resolve().parents[2] / "shared"  # ../shared beside the repository
 
 
+@pytest.fixture(autouse=True)
+def seeded_generators():
+    """Every test draws the same numbers from torch's and numpy's global generators whichever tests ran
+    before it in its worker (pytest-xdist deals tests out differently from run to run)."""
+    import numpy as np
+    import torch
+
+    torch.manual_seed(0)
+    np.random.seed(0)
+
+
 @pytest.fixture(scope="session")
 def shared_envmaps() -> list[Path]:
     maps = sorted((SHARED / "envmaps").glob("*.hdr"))
