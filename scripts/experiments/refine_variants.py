@@ -56,4 +56,5 @@ for i in map(int, sys.argv[2].split(",")):
               "rerender", result.report.get("rerender_error"), "iou_mean", result.report["silhouette_iou_mean"],
               result.report.get("kept_why", ""), flush=True)
         for r in result.report.get("silhouette_rounds", []):
-            print("   round", r["kept"], r["worst_iou"], r["seconds"], flush=True)
+            print("   round", r["kept"], r["worst_iou"], "carved", r.get("carved"), r["seconds"], flush=True)
+        print("   carve", result.report.get("hull_carve"), flush=True)
