@@ -306,6 +306,17 @@ def test_slots_the_surface_filled_are_carved_back_by_the_hull():
     # the report's IoU is the carved mesh's
     assert report["iou_mean"][1] == pytest.approx(iou_carved.mean(), abs=1e-4)
     assert "crumbs_dropped" not in report
+    # the photos have the last word (`carve_rerender_check`): kept where the carved mesh explains them no worse,
+    # refused where worse by more than 1% (stand-ins for the re-rendering error: the volume's distance to the
+    # bar's, which the open slots bring closer, and to the filled mesh's)
+    filled_volume, bar_volume = plain.mesh.volume, gt.volume
+    assert abs(carved.volume - bar_volume) < 0.97 * abs(filled_volume - bar_volume)  # measured: 0.93 x
+    closer = carve_by_hull(plain.mesh, hull.mesh, cameras, masks, cast, weights, CONFIG,
+                           lambda m: abs(m.volume - bar_volume))
+    assert closer[0] is not None and closer[2]["kept"] and closer[2]["rerender_error"][1] < closer[2]["rerender_error"][0]
+    farther = carve_by_hull(plain.mesh, hull.mesh, cameras, masks, cast, weights, CONFIG,
+                            lambda m: abs(m.volume - filled_volume) + 1e-3)
+    assert farther[0] is None and not farther[2]["kept"] and farther[2]["why"] == "it re-renders the photos worse"
     # a speck grazing the hull from outside leaves no crumb in the carve
     depth = trimesh.proximity.signed_distance(plain.mesh, hull.mesh.vertices)  # hull corners far out of the mesh
     assert depth.min() < -0.02  # the speck lies out of the mesh
