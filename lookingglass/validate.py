@@ -136,7 +136,11 @@ def evaluate_validation_set(root, out, config: PipelineConfig | None = None, nam
                              "seconds": found["seconds"],
                              **({"learned": found["learned"]["value"]} if "learned" in found else {})}
         with torch.inference_mode():
-            record.update(normal_errors(out / name, capture, gt, hull, mesh))
+            # a run stopped before the surface gives the hull as its mesh: its normals are the hull's, not traced again
+            mesh_is_hull = report["mesh_from"] == "visual_hull"
+            record.update(normal_errors(out / name, capture, gt, hull, None if mesh_is_hull else mesh))
+            if mesh_is_hull and "n1_median_hull" in record:
+                record.update(n1_median_mesh=record["n1_median_hull"], n2_median_mesh=record["n2_median_hull"])
         # how well each mesh explains the photos (render/compare.py); the refine stage has already
         # re-rendered its input (the surface) and its result, at the same seed (and, by default, width
         # and samples)
