@@ -27,7 +27,7 @@ surface (capture frame, closed) and, in the hull-normalized frame (max |p| = 1):
 3. where the refined silhouette still spills out of a mask (a slot the surface stage filled: the
    pull moves a vertex toward the nearest boundary, and the fairing holds a slot's floor),
    intersects it with the visual hull (manifold3d) and keeps that when the masks agree better
-   (`carve_by_hull`);
+   and the photos not much worse (`carve_by_hull`, `carve_rerender_tolerance`);
 4. keeps the better of the input and the refined mesh on the measures the stage optimizes:
    silhouette IoU against the masks (ray cast at the capture's resolution; the weighted mean, which
    may fall within `keep_tolerance` only where the refined mesh re-renders the photos better by more
@@ -234,7 +234,8 @@ class RefineConfig:
                                         "loss by at most s (0: plain mean).", range=(0, None))
     hull_carve: bool = setting(True, "Intersect the refined mesh with the visual hull (manifold3d) when its silhouette "
                                      "spills out of a mask by more than carve_outside_share, and keep the carved mesh "
-                                     "when it matches the masks better (mean IoU up by more than keep_tolerance).")
+                                     "when it matches the masks better (mean IoU up by more than keep_tolerance) "
+                                     "and re-renders the photos no worse than carve_rerender_tolerance allows.")
     carve_rerender_tolerance: float = setting(0.05, "The hull carve is refused where the carved mesh re-renders the "
                                                     "photos worse than the uncarved one by more than this share (with "
                                                     "photos and rerender_width > 0; 1e9: never). 0.05: test scene 0 "
@@ -968,7 +969,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         iou = cast_iou(result.casts, masks)
         worst = float(iou[trusted].min()) if trusted.any() else 1.0
         rounds.append({"boost": [round(float(b), 3) for b in boost], "kept": result.report["kept"],
-                       "carved": bool(result.report.get("hull_carve", {}).get("kept", False)),
+                       "carved": bool(result.report.get("hull_carve", {}).get("kept", False)),  # the refined mesh
                        "worst_iou": round(worst, 4), "seconds": result.report["seconds"]})
         stalled = index > 0 and worst <= best_worst + config.silhouette_round_gain
         if worst > best_worst:
@@ -1110,6 +1111,7 @@ def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cam
         t_photo = time.perf_counter()
         target = _PhotoTarget.of(capture, hull, config.rerender_width or RERENDER_WIDTH, config.photometric_envmap_height)
         photo_losses = descend(target, config.photometric_step, config.photometric_iterations)
+        rerendered.pop("refined", None)  # the normal term's, of the mesh before these steps
         timings["photometric"] = time.perf_counter() - t_photo
     timings["optimize"] = time.perf_counter() - t
 
@@ -1147,7 +1149,7 @@ def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cam
     if prepared is not None:
         rerendered["input"] = once("input_rerendering", lambda: rerender(mesh, capture, prepared=prepared,
                                                                          samples_per_axis=config.rerender_samples))
-        if "refined" not in rerendered or photo_losses:
+        if "refined" not in rerendered:
             rerendered["refined"] = rerender(refined, capture, prepared=prepared,
                                                 samples_per_axis=config.rerender_samples)
         rr = tuple(mean_w(rerendered[k].error) for k in ("input", "refined"))
