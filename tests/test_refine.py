@@ -233,6 +233,39 @@ def test_rounds_that_do_not_help_end_early(scene):
     assert result.report["silhouette_round"] == 0
 
 
+@pytest.mark.parametrize("worst, rounds, returned, ended", [
+    ([0.95, 0.985], 2, 1, "target met"),
+    ([0.95, 0.97, 0.975], 3, 2, "rounds spent"),
+    ([0.95, 0.9509, 0.99], 2, 1, "stalled"),  # 0.0009 is no gain: the third round never runs
+    ([0.95, 0.9511, 0.96], 3, 2, "rounds spent"),
+    ([0.95, 0.94, 0.99], 2, 0, "stalled"),  # a worse round is the last, and not the one returned
+])
+def test_the_rounds_run_while_they_raise_the_worst_view(monkeypatch, worst, rounds, returned, ended):
+    """The rounds' bookkeeping alone (`refine_surface` over stand-in rounds whose kept meshes' worst
+    views are `worst`): a round runs while a view is below the target, the retries last and the
+    previous round raised the best worst view by more than silhouette_round_gain (0.001); the
+    round with the best worst view is returned."""
+    import lookingglass.refine as refine
+
+    V, calls = 4, []
+
+    def one_round(mesh, hull, masks, cameras, config, weights, boost, capture, normals, start):
+        calls.append(boost.copy())
+        return SimpleNamespace(report={"kept": "refined", "seconds": 1.0}, casts=len(calls) - 1)
+
+    monkeypatch.setattr(refine, "_refine_once", one_round)
+    # view 0 is the worst in every round, the others at 0.99
+    monkeypatch.setattr(refine, "cast_iou", lambda casts, masks: np.array([worst[casts], 0.99, 0.99, 0.99]))
+    config = RefineConfig()
+    assert config.silhouette_retries == 2 and config.silhouette_round_gain == 0.001
+    result = refine_surface(None, SimpleNamespace(view_coverage=np.ones(V)), np.zeros((V, 2, 2), bool), None, config)
+    assert len(calls) == rounds and result.casts == returned
+    assert result.report["silhouette_round"] == returned and result.report["silhouette_rounds_ended"] == ended
+    assert [r["worst_iou"] for r in result.report["silhouette_rounds"]] == worst[:rounds]
+    # only the view left short pulls harder, 3 x a round
+    np.testing.assert_array_equal(np.array(calls), [[3.0 ** k, 1, 1, 1] for k in range(rounds)])
+
+
 def test_a_view_with_a_stray_blob_is_down_weighted_and_named(scene):
     gt, cameras, masks, hull = scene
     bad = masks.copy()
