@@ -32,8 +32,9 @@ surface (capture frame, closed) and, in the hull-normalized frame (max |p| = 1):
    silhouette IoU against the masks (ray cast at the capture's resolution; the weighted mean, which
    may fall within `keep_tolerance` only where the refined mesh re-renders the photos better by more
    than 1%: the keep check's re-rendering, last paragraph below; and the worst view),
-   and, on the remeshed connectivity, the roughness (Laplacian) and fold-overs.
-   report.json says which mesh was kept and why;
+   and, on the remeshed connectivity, the roughness (Laplacian) and fold-overs; the re-rendering
+   itself may be up to 1% worse, or `masks_better_rerender_tolerance` (5%) where the masks say the
+   refined mesh is clearly better (`worse_measures`). report.json says which mesh was kept and why;
 5. where a view of full weight is still below `silhouette_iou_target` (0.98), reruns 1-4 from the
    input with that view's silhouette weight tripled, up to `silhouette_retries` times (a penalty
    method on the views: on 128x96 masks the silhouette weight must be weak against the fairing, and
