@@ -904,7 +904,7 @@ def carve_by_hull(refined: trimesh.Trimesh, hull_mesh: trimesh.Trimesh, cameras:
 
 def worse_measures(iou_in: np.ndarray, iou_out: np.ndarray, weights: np.ndarray, roughness: tuple[float, float],
                    folds: int, rerender_errors: tuple[float, float] | None, tol: float,
-                   masks_better_tolerance: float = 0.05) -> list[str]:
+                   masks_better_tolerance: float = RefineConfig.masks_better_rerender_tolerance) -> list[str]:
     """The keep check's verdict: the measures on which the refined mesh is worse than its input
     (empty: keep it). iou_in / iou_out: each view's silhouette IoU; weights: the views' weights;
     roughness: (input, refined); rerender_errors: (input, refined) against the photos, or None.
@@ -1130,39 +1130,32 @@ def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cam
     after = _terms(x, faces, fields, cams, lap, weights, config)
     folds = fold_overs(x0, x, faces)
     refined = trimesh.Trimesh(hull.denormalize_points(x), faces, process=False)
+    # each mesh compared with the photos is re-rendered once (the normal term's is of these vertices)
+    renders = [(refined, rerendered["refined"])] if "refined" in rerendered else []
+
+    def rendering(m: trimesh.Trimesh):
+        found = next((r for seen, r in renders if seen is m), None)
+        if found is None:
+            found = rerender(m, capture, prepared=prepared, samples_per_axis=config.rerender_samples)
+            renders.append((m, found))
+        return found
+
     cast_in, cast_out = once("input_casts", lambda: object_masks(mesh, cameras)), object_masks(refined, cameras)
     iou_in, iou_out = cast_iou(cast_in, masks), cast_iou(cast_out, masks)
     carve_report: dict = {}
     if config.hull_carve:
         t_carve = time.perf_counter()
-        renders: list = []  # the carve check's re-renderings: (mesh, its re-rendering)
-
-        def rendered(m: trimesh.Trimesh):
-            return next((r for seen, r in renders if seen is m), None)
-
-        def photo_error(m: trimesh.Trimesh) -> float:
-            if rendered(m) is None:
-                renders.append((m, rerendered["refined"] if m is refined and "refined" in rerendered else
-                                rerender(m, capture, prepared=prepared, samples_per_axis=config.rerender_samples)))
-            return mean_w(rendered(m).error)
-
-        checked = photo_error if prepared is not None else None
+        photo_error = (lambda m: mean_w(rendering(m).error)) if prepared is not None else None
         carved, cast_carved, carve_report = carve_by_hull(refined, hull.mesh, cameras, masks, cast_out, weights, config,
-                                                          checked)
+                                                          photo_error)
         timings["carve"] = time.perf_counter() - t_carve
         if carved is not None:
-            rerendered.pop("refined", None)  # re-rendered below, carved, unless the check did
-            rerendered.update({"refined": rendered(carved)} if rendered(carved) is not None else {})
             refined, cast_out, iou_out = carved, cast_carved, cast_iou(cast_carved, masks)
-        elif rendered(refined) is not None:
-            rerendered["refined"] = rendered(refined)
     rr = None
     if prepared is not None:
         rerendered["input"] = once("input_rerendering", lambda: rerender(mesh, capture, prepared=prepared,
                                                                          samples_per_axis=config.rerender_samples))
-        if "refined" not in rerendered:
-            rerendered["refined"] = rerender(refined, capture, prepared=prepared,
-                                                samples_per_axis=config.rerender_samples)
+        rerendered["refined"] = rendering(refined)
         rr = tuple(mean_w(rerendered[k].error) for k in ("input", "refined"))
     worse = worse_measures(iou_in, iou_out, weights, (before["smooth"], after["smooth"]), folds, rr,
                            config.keep_tolerance, config.masks_better_rerender_tolerance)
