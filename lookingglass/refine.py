@@ -154,10 +154,12 @@ class RefineConfig:
     silhouette_views_thick: int = setting(10, "View count above which the silhouette weight on parts at least "
                                               "fair_thickness thick falls as this / V on full-width masks (thinner "
                                               "parts keep more, as (thickness / fair_thickness)^2 says: the fairing "
-                                              "shrinks them first; coarse masks keep all of it: coarse_share; 0: "
+                                              "shrinks them first; coarse masks: silhouette_views_thick_coarse; 0: "
                                               "never). 20 views (val480v20): CD 3.26 -> 3.14, the key's worst view "
                                               "held (docs/history.md, session 63).",
                                           range=(0, None))
+    silhouette_views_thick_coarse: int = setting(0, "The same on coarse masks (coarse_share; between, blended; 0: "
+                                                    "never).", range=(0, None))
     silhouette_retries: int = setting(2, "Rounds the stage reruns from its input while a view's silhouette IoU (the kept "
                                          "mesh's, a view of full weight) is below silhouette_iou_target, that view's "
                                          "silhouette weight multiplied by silhouette_retry_factor each round; the "
@@ -639,10 +641,11 @@ def silhouette_thick_share(config: RefineConfig, num_views: int, mask_width: int
     fewer keep the whole weight; on 128x96 masks (test scenes 0-4 at 20 views) it lowered CD (10.20 ->
     7.97 on scene 0) but cost the worst view (scene 3: 0.984 -> 0.971), where the weak silhouettes
     (0.38) already leave rims inside the masks."""
-    views = config.silhouette_views_thick
-    if not 0 < views < num_views:
-        return 1.0
-    return 1.0 - (1.0 - coarse_share(config, mask_width)) * (1.0 - views / num_views)
+    def share(threshold: int) -> float:
+        return threshold / num_views if 0 < threshold < num_views else 1.0
+
+    coarse = coarse_share(config, mask_width)
+    return (1.0 - coarse) * share(config.silhouette_views_thick) + coarse * share(config.silhouette_views_thick_coarse)
 
 
 def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.ndarray, cams: Cameras,

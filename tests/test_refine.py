@@ -732,6 +732,14 @@ def test_above_ten_views_the_thick_parts_pull_less_on_full_width_masks():
     assert np.allclose(silhouette_vertex_shares(dataclasses.replace(config, fair_thickness=0.0), 20, 480, v, f), 0.5)
     # off
     assert silhouette_thick_share(dataclasses.replace(config, silhouette_views_thick=0), 20, 480) == 1.0
+    # on coarse masks, silhouette_views_thick_coarse's: blended by coarse_share as the full-width one
+    coarse = dataclasses.replace(config, silhouette_views_thick=0, silhouette_views_thick_coarse=10)
+    assert [silhouette_thick_share(coarse, 20, w) for w in (128, 240, 480)] == [0.5, 0.5, 1.0]
+    assert np.isclose(silhouette_thick_share(coarse, 20, 360), 1 - 0.5 * (1 - plain))
+    assert silhouette_thick_share(coarse, 10, 128) == 1.0
+    both = dataclasses.replace(coarse, silhouette_views_thick=10)
+    assert all(np.isclose(silhouette_thick_share(both, 20, w), 0.5) for w in (128, 360, 480))
+    assert np.allclose(silhouette_vertex_shares(coarse, 20, 128, *map(np.asarray, (ball.vertices, ball.faces))), 0.5)
 
 
 def test_the_thick_parts_share_reaches_the_silhouette_constraints(scene, monkeypatch):
