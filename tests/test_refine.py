@@ -708,13 +708,14 @@ def test_only_the_plain_fairing_is_weakened_on_thin_parts():
 def test_above_ten_views_the_thick_parts_pull_less_on_full_width_masks():
     """silhouette_vertex_shares: with V > silhouette_views_thick (10) masks at full width, a part at least
     fair_thickness thick gets 10 / V of the silhouette weight and a thin one more, by the same
-    (thickness / fair_thickness)^2 as the fairing; 10 views and fewer, or coarse masks (where the
-    fairing keeps the curvature), keep all of it; between, the plain fairing's share of the fall."""
+    (thickness / fair_thickness)^2 as the fairing; 10 views and fewer keep all of it; coarse masks follow
+    silhouette_views_thick_coarse (off here, then on), and between, blended by the plain fairing's share."""
     from lookingglass.refine import fair_curvature_share, silhouette_thick_share, silhouette_vertex_shares
 
     rod = trimesh.creation.capsule(height=1.0, radius=0.05, count=[16, 16])  # diameter 0.1: half of 0.2
     ball = trimesh.creation.icosphere(subdivisions=3, radius=0.4)  # diameter 0.8
-    config = RefineConfig(fair_thickness=0.2, silhouette_views_thick=10)
+    config = RefineConfig(fair_thickness=0.2, silhouette_views_thick=10, silhouette_views_thick_coarse=0)
+    assert RefineConfig().silhouette_views_thick_coarse == 10  # the default: on coarse masks too (session 66)
     assert silhouette_thick_share(config, 20, 480) == 0.5 and silhouette_thick_share(config, 40, 1920) == 0.25
     assert [silhouette_thick_share(config, v, 480) for v in (5, 10)] == [1.0, 1.0]
     assert silhouette_thick_share(config, 20, 128) == 1.0 == silhouette_thick_share(config, 20, 240)
