@@ -233,25 +233,31 @@ def test_rounds_that_do_not_help_end_early(scene):
     assert result.report["silhouette_round"] == 0
 
 
-@pytest.mark.parametrize("worst, rounds, returned, ended", [
-    ([0.95, 0.985], 2, 1, "target met"),
-    ([0.95, 0.97, 0.975], 3, 2, "rounds spent"),
-    ([0.95, 0.9509, 0.99], 2, 1, "stalled"),  # 0.0009 is no gain: the third round never runs
-    ([0.95, 0.9511, 0.96], 3, 2, "rounds spent"),
-    ([0.95, 0.94, 0.99], 2, 0, "stalled"),  # a worse round is the last, and not the one returned
+@pytest.mark.parametrize("worst, rounds, returned, ended, kept", [
+    ([0.95, 0.985], 2, 1, "target met", None),
+    ([0.95, 0.97, 0.975], 3, 2, "rounds spent", None),
+    ([0.95, 0.9509, 0.99], 2, 1, "stalled", None),  # 0.0009 is no gain: the third round never runs
+    ([0.95, 0.9511, 0.96], 3, 2, "rounds spent", None),
+    ([0.95, 0.94, 0.99], 2, 0, "stalled", None),  # a worse round is the last, and not the one returned
+    # a round that keeps its refined mesh beats one that keeps the input (20-view test scene 30)
+    ([0.9787, 0.9775], 2, 1, "stalled", ["input", "refined"]),
+    ([0.95, 0.97, 0.96], 3, 2, "stalled", ["refined", "input", "refined"]),
+    ([0.95, 0.97, 0.955], 3, 1, "stalled", ["input", "input", "input"]),  # none refined: the best worst view
 ])
-def test_the_rounds_run_while_they_raise_the_worst_view(monkeypatch, worst, rounds, returned, ended):
+def test_the_rounds_run_while_they_raise_the_worst_view(monkeypatch, worst, rounds, returned, ended, kept):
     """The rounds' bookkeeping alone (`refine_surface` over stand-in rounds whose kept meshes' worst
-    views are `worst`): a round runs while a view is below the target, the retries last and the
-    previous round raised the best worst view by more than silhouette_round_gain (0.001); the
-    round with the best worst view is returned."""
+    views are `worst`, each the refined mesh or, where `kept` says so, the input): a round runs while
+    a view is below the target, the retries last and the previous round raised the best worst view by
+    more than silhouette_round_gain (0.001); of the rounds that keep their refined mesh (else of all)
+    the one with the best worst view is returned."""
     import lookingglass.refine as refine
 
     V, calls = 4, []
+    kept = kept or ["refined"] * len(worst)
 
     def one_round(mesh, hull, masks, cameras, config, weights, boost, capture, normals, start):
         calls.append(boost.copy())
-        return SimpleNamespace(report={"kept": "refined", "seconds": 1.0}, casts=len(calls) - 1)
+        return SimpleNamespace(report={"kept": kept[len(calls) - 1], "seconds": 1.0}, casts=len(calls) - 1)
 
     monkeypatch.setattr(refine, "_refine_once", one_round)
     # view 0 is the worst in every round, the others at 0.99
