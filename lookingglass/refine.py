@@ -156,7 +156,7 @@ class RefineConfig:
                                               "fair_thickness thick falls as this / V on full-width masks (thinner "
                                               "parts keep more, as (thickness / fair_thickness)^2 says: the fairing "
                                               "shrinks them first; coarse masks: silhouette_views_thick_coarse; 0: "
-                                              "never). 20 views (val480v20): CD 3.26 -> 3.14, the key's worst view "
+                                              "never on full-width masks). 20 views (val480v20): CD 3.26 -> 3.14, the key's worst view "
                                               "held (docs/history.md, session 63).",
                                           range=(0, None))
     silhouette_views_thick_coarse: int = setting(10, "The same on coarse masks (coarse_share; between, blended; 0: "
@@ -167,12 +167,13 @@ class RefineConfig:
     silhouette_retries: int = setting(2, "Rounds the stage reruns from its input while a view's silhouette IoU (the kept "
                                          "mesh's, a view of full weight) is below silhouette_iou_target, that view's "
                                          "silhouette weight multiplied by silhouette_retry_factor each round; the "
-                                         "round whose worst view is best is kept, one that keeps its refined mesh first (0: one round). Test split at 128x96, "
-                                         "10 views, 14 of the 15 scenes below 0.98 reach it (docs/history.md, "
-                                         "session 64).", range=(0, 10))
+                                         "round whose worst view is best is kept, of those that keep their refined "
+                                         "mesh if any do (0: one round). Test split at 128x96, 10 views, 14 of the 15 "
+                                         "scenes below 0.98 reach it (docs/history.md, session 64).", range=(0, 10))
     silhouette_round_gain: float = setting(0.001, "A round whose worst view (its kept mesh's) is not above the best "
-                                                  "round's by more than this ends the rounds: pushing harder did not "
-                                                  "help (the 5-view test scene 35 kept its input in three rounds).",
+                                                  "worst view of the rounds before by more than this ends the rounds "
+                                                  "(silhouette_rounds_ended: why the last round was the last): "
+                                                  "pushing harder did not help (the 5-view test scene 35 kept its input in three rounds).",
                                            range=(0, 1))
     silhouette_retry_factor: float = setting(3.0, "What each of silhouette_retries' rounds multiplies a short view's "
                                                   "silhouette weight by (3: 3 x, then 9 x).", range=(1, 100))
@@ -193,7 +194,7 @@ class RefineConfig:
                                          "fairing weakens as (thickness / this)^2: a thin part shrinks under it first "
                                          "(0: uniform fairing; the fairing that keeps the curvature, on coarse masks, "
                                          "does not shrink it and is not weakened; 0 until session 60). Also the "
-                                         "thickness above which silhouette_views_thick acts (0: on every part).",
+                                         "thickness above which silhouette_views_thick(_coarse) acts (0: on every part).",
                                     range=(0, None))
     fair_curvature_rings: int = setting(8, "Neighbour-averaging steps that make the fairing's target: each iteration "
                                            "the fairing pulls the Laplacian of the positions toward itself averaged "
@@ -527,8 +528,8 @@ def silhouette_weight(config: RefineConfig, mask_width: int, num_views: int | No
     config.silhouette_weight, scaled by (mask_width / silhouette_width)^silhouette_width_power below
     silhouette_width and by silhouette_views / num_views below silhouette_views views on full-width
     masks, silhouette_views_coarse / num_views below that many on coarse ones (blended by
-    coarse_share). Above silhouette_views_thick views the thick parts' share of it falls too
-    (silhouette_vertex_shares).
+    coarse_share). Above silhouette_views_thick views (silhouette_views_thick_coarse on coarse masks)
+    the thick parts' share of it falls too (silhouette_vertex_shares).
 
     Width: a coarse mask's boundary is off by up to half a pixel, a larger share of the object, and a
     rim pulled onto it takes its neighbourhood along. On scenes 1-6 of the 10-view test split
@@ -591,7 +592,7 @@ def fair_curvature_share(config: RefineConfig, mask_width: int) -> float:
 
 def coarse_share(config: RefineConfig, mask_width: int) -> float:
     """How coarse masks `mask_width` pixels wide are, for the settings that differ on coarse masks (the
-    fairing that keeps the curvature, silhouette_views_coarse, silhouette_views_thick): 1 at half
+    fairing that keeps the curvature, silhouette_views_coarse, silhouette_views_thick_coarse): 1 at half
     silhouette_width and below, 0 at silhouette_width and above, linear between."""
     return min(1.0, max(0.0, 2.0 * (1.0 - _width_scale(config, mask_width))))
 
@@ -964,8 +965,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     for a net without a gain head), or a `NormalStageResult` made elsewhere; the term is skipped
     without, or when the net has no gain head. Returns the kept mesh (the better of the refined one
     and the input) and the report, of the round (`silhouette_retries`) whose kept mesh matches its
-    worst view best, a round that keeps its refined mesh first. Warns (warnings.warn) for every down-weighted view, named by
-    `view_names` (V,) when given (its mask file)."""
+    worst view best, of those that keep their refined mesh if any do. Warns (warnings.warn) for every
+    down-weighted view, named by `view_names` (V,) when given (its mask file)."""
     config = config or RefineConfig()
     start_time = time.perf_counter()
     masks = np.asarray(masks, bool)
@@ -982,13 +983,14 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
 
     # A penalty method on the views: a view the kept mesh still misses (IoU below the target) pulls
     # harder in the next round, rerun from the input; the round whose kept mesh matches its worst
-    # view best is returned (a refined one first, below). Views whose masks disagree with the others (weight < 1) are not pushed.
+    # view best is returned (a refined one first, below). Views whose masks disagree with the others
+    # (weight < 1) are not pushed.
     boost = np.ones(V)
     # A round that returns a refined mesh beats one that returns the input: each round's keep check
     # weighed its refined mesh against that same input, within its tolerances (keep_tolerance), and
     # a round must not undo that for less (20-view test scene 30: the input's worst view 0.9787
     # against a refined one's 0.9775, CDN-mean 8.2 against 4.2 degrees; session 66).
-    rounds, best, best_rank, best_worst = [], None, (False, -1.0), -1.0
+    rounds, best, best_rank, best_index, best_worst = [], None, (False, -1.0), 0, -1.0
     start: dict = {}  # what every round starts from (filled by the first)
     trusted = weights >= 1
     for index in range(config.silhouette_retries + 1):
