@@ -650,7 +650,8 @@ def silhouette_thick_share(config: RefineConfig, num_views: int, mask_width: int
     penalty rounds (silhouette_retries) since pull a view left short harder: with them the same
     halving on coarse masks took the 20-view validation set at 240x180 to CD 3.81 -> 3.63 and
     CDN-mean 7.28 -> 7.02 with every view >= 0.98 on 10 of 10 (9 before), and the 20-view test split
-    (128x96) to the figures in docs/results.md (docs/history.md, session 66)."""
+    (128x96) to CD 6.28 -> 6.02 and CDN-mean 8.89 -> 8.37, where three scenes' rounds stall a hair
+    below 0.98 (every view >= 0.98 on 56 -> 53 of 60; docs/history.md, session 66)."""
     def share(threshold: int) -> float:
         return threshold / num_views if 0 < threshold < num_views else 1.0
 
