@@ -156,8 +156,8 @@ class RefineConfig:
                                               "fair_thickness thick falls as this / V on full-width masks (thinner "
                                               "parts keep more, as (thickness / fair_thickness)^2 says: the fairing "
                                               "shrinks them first; coarse masks: silhouette_views_thick_coarse; 0: "
-                                              "never on full-width masks). 20 views (val480v20): CD 3.26 -> 3.14, the key's worst view "
-                                              "held (docs/history.md, session 63).",
+                                              "never on full-width masks). 20 views (val480v20): CD 3.26 -> 3.14, "
+                                              "the key's worst view held (docs/history.md, session 63).",
                                           range=(0, None))
     silhouette_views_thick_coarse: int = setting(10, "The same on coarse masks (coarse_share; between, blended; 0: "
                                                      "never). 20 views at 240x180 (val240v20): CD 3.81 -> 3.63, "
@@ -173,7 +173,8 @@ class RefineConfig:
     silhouette_round_gain: float = setting(0.001, "A round whose worst view (its kept mesh's) is not above the best "
                                                   "worst view of the rounds before by more than this ends the rounds "
                                                   "(silhouette_rounds_ended: why the last round was the last): "
-                                                  "pushing harder did not help (the 5-view test scene 35 kept its input in three rounds).",
+                                                  "pushing harder did not help (the 5-view test scene 35 kept its "
+                                                  "input in three rounds).",
                                            range=(0, 1))
     silhouette_retry_factor: float = setting(3.0, "What each of silhouette_retries' rounds multiplies a short view's "
                                                   "silhouette weight by (3: 3 x, then 9 x).", range=(1, 100))
