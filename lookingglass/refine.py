@@ -164,6 +164,12 @@ class RefineConfig:
                                                      "CDN-mean 7.28 -> 7.02, every view >= 0.98 on 9 -> 10 of 10 "
                                                      "with the penalty rounds (docs/history.md, session 66).",
                                                  range=(0, None))
+    silhouette_thick_share_coarse: float = setting(0.5, "The most of the silhouette weight those thick parts get on "
+                                                        "coarse masks from silhouette_views_thick_coarse views on (1: "
+                                                        "no cap; 20 views: 10 / 20 already). 10 views, the test split "
+                                                        "(128x96): CD 8.59 -> 8.46, CDN-mean 11.57 -> 11.27, every view "
+                                                        ">= 0.98 on 58 -> 57 of 60 (docs/history.md, session 67).",
+                                                   range=(0, 1))
     silhouette_retries: int = setting(2, "Rounds the stage reruns from its input while a view's silhouette IoU (the kept "
                                          "mesh's, a view of full weight) is below silhouette_iou_target, that view's "
                                          "silhouette weight multiplied by silhouette_retry_factor each round; the "
@@ -657,7 +663,10 @@ def silhouette_thick_share(config: RefineConfig, num_views: int, mask_width: int
         return threshold / num_views if 0 < threshold < num_views else 1.0
 
     coarse = coarse_share(config, mask_width)
-    return (1.0 - coarse) * share(config.silhouette_views_thick) + coarse * share(config.silhouette_views_thick_coarse)
+    coarse_thick = 1.0
+    if 0 < config.silhouette_views_thick_coarse <= num_views:
+        coarse_thick = min(share(config.silhouette_views_thick_coarse), config.silhouette_thick_share_coarse)
+    return (1.0 - coarse) * share(config.silhouette_views_thick) + coarse * coarse_thick
 
 
 def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.ndarray, cams: Cameras,
