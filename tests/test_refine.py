@@ -715,13 +715,16 @@ def test_above_ten_views_the_thick_parts_pull_less_on_full_width_masks():
     """silhouette_vertex_shares: with V > silhouette_views_thick (10) masks at full width, a part at least
     fair_thickness thick gets 10 / V of the silhouette weight and a thin one more, by the same
     (thickness / fair_thickness)^2 as the fairing; 10 views and fewer keep all of it; coarse masks follow
-    silhouette_views_thick_coarse (off here, then on), and between, the two blended by coarse_share."""
+    silhouette_views_thick_coarse (off here, then on) with silhouette_thick_share_coarse's cap from that many
+    views on (off, then on), and between, the two blended by coarse_share."""
     from lookingglass.refine import fair_curvature_share, silhouette_thick_share, silhouette_vertex_shares
 
     rod = trimesh.creation.capsule(height=1.0, radius=0.05, count=[16, 16])  # diameter 0.1: half of 0.2
     ball = trimesh.creation.icosphere(subdivisions=3, radius=0.4)  # diameter 0.8
-    config = RefineConfig(fair_thickness=0.2, silhouette_views_thick=10, silhouette_views_thick_coarse=0)
+    config = RefineConfig(fair_thickness=0.2, silhouette_views_thick=10, silhouette_views_thick_coarse=0,
+                          silhouette_thick_share_coarse=1.0)
     assert RefineConfig().silhouette_views_thick_coarse == 10  # the default: on coarse masks too (session 66)
+    assert RefineConfig().silhouette_thick_share_coarse == 0.5  # at most half there from 10 views on (session 67)
     assert silhouette_thick_share(config, 20, 480) == 0.5 and silhouette_thick_share(config, 40, 1920) == 0.25
     assert [silhouette_thick_share(config, v, 480) for v in (5, 10)] == [1.0, 1.0]
     assert silhouette_thick_share(config, 20, 128) == 1.0 == silhouette_thick_share(config, 20, 240)
@@ -748,6 +751,17 @@ def test_above_ten_views_the_thick_parts_pull_less_on_full_width_masks():
     both = dataclasses.replace(coarse, silhouette_views_thick=10)
     assert all(np.isclose(silhouette_thick_share(both, 20, w), 0.5) for w in (128, 360, 480))
     assert np.allclose(silhouette_vertex_shares(coarse, 20, 128, *map(np.asarray, (ball.vertices, ball.faces))), 0.5)
+    # the cap on coarse masks, from silhouette_views_thick_coarse views on: the lower of it and 10 / V
+    capped = dataclasses.replace(both, silhouette_thick_share_coarse=0.5)
+    assert [silhouette_thick_share(capped, v, 128) for v in (5, 9, 10, 20, 40)] == [1.0, 1.0, 0.5, 0.5, 0.25]
+    assert [silhouette_thick_share(capped, v, 480) for v in (5, 10, 20, 40)] == [1.0, 1.0, 0.5, 0.25]
+    assert np.isclose(silhouette_thick_share(capped, 10, 300), 0.625)  # coarse_share 0.75: 0.25 x 1 + 0.75 x 0.5
+    assert silhouette_thick_share(dataclasses.replace(capped, silhouette_thick_share_coarse=0.3), 10, 240) == 0.3
+    assert silhouette_thick_share(dataclasses.replace(capped, silhouette_views_thick_coarse=0), 10, 128) == 1.0
+    v, f = np.asarray(ball.vertices), np.asarray(ball.faces)
+    assert np.allclose(silhouette_vertex_shares(capped, 10, 128, v, f), 0.5)
+    assert np.all(silhouette_vertex_shares(capped, 10, 480, v, f) == 1.0)
+    assert np.all(silhouette_vertex_shares(capped, 5, 128, v, f) == 1.0)
 
 
 def test_the_thick_parts_share_reaches_the_silhouette_constraints(scene, monkeypatch):
@@ -773,8 +787,9 @@ def test_the_thick_parts_share_reaches_the_silhouette_constraints(scene, monkeyp
     original = refine._constraints
     monkeypatch.setattr(refine, "_constraints", lambda *a: seen.append(a[-1]) or original(*a))
     # 5 "thick" views below 10: a share of 1 - (1 - 5 / 10) x (1 - coarse_share) at 320 px, on every
-    # part (no thickness to spare)
-    config = dataclasses.replace(CONFIG, iterations=2, silhouette_views_thick=5, fair_thickness=0.0)
+    # part (no thickness to spare; the coarse masks' cap off)
+    config = dataclasses.replace(CONFIG, iterations=2, silhouette_views_thick=5, fair_thickness=0.0,
+                                 silhouette_thick_share_coarse=1.0)
     result = refine_surface(lumpy_shrunken(gt), hull, masks, cameras, config)
     share = refine.silhouette_thick_share(config, len(masks), masks.shape[2])
     assert 0.5 < share < 1 and result.report["silhouette_share_thick"] == pytest.approx(share, abs=1e-4)
