@@ -164,11 +164,12 @@ class RefineConfig:
                                                      "CDN-mean 7.28 -> 7.02, every view >= 0.98 on 9 -> 10 of 10 "
                                                      "with the penalty rounds (docs/history.md, session 66).",
                                                  range=(0, None))
-    silhouette_thick_share_coarse: float = setting(0.5, "The most of the silhouette weight those thick parts get on "
-                                                        "coarse masks from silhouette_views_thick_coarse views on (1: "
-                                                        "no cap; 20 views: 10 / 20 already). 10 views, the test split "
-                                                        "(128x96): CD 8.59 -> 8.46, CDN-mean 11.57 -> 11.27, every view "
-                                                        ">= 0.98 on 58 -> 57 of 60 (docs/history.md, session 67).",
+    silhouette_thick_share_coarse: float = setting(0.5, "The most of the silhouette weight parts at least "
+                                                        "fair_thickness thick get on coarse masks from "
+                                                        "silhouette_views_thick_coarse views on (1: no cap; 20 views: "
+                                                        "10 / 20 already). 10 views, the test split (128x96): CD "
+                                                        "8.59 -> 8.46, CDN-mean 11.57 -> 11.27, every view >= 0.98 on "
+                                                        "58 -> 57 of 60 (docs/history.md, session 67).",
                                                    range=(0, 1))
     silhouette_retries: int = setting(2, "Rounds the stage reruns from its input while a view's silhouette IoU (the kept "
                                          "mesh's, a view of full weight) is below silhouette_iou_target, that view's "
@@ -641,8 +642,8 @@ def silhouette_vertex_shares(config: RefineConfig, num_views: int, mask_width: i
 def silhouette_thick_share(config: RefineConfig, num_views: int, mask_width: int) -> float:
     """The thick parts' share of the silhouette weight with `num_views` masks `mask_width` pixels wide:
     silhouette_views_thick / V above silhouette_views_thick views on full-width masks,
-    silhouette_views_thick_coarse / V above that many on coarse ones (blended by coarse_share). It
-    weakens both silhouette terms (rim and outside).
+    min(silhouette_views_thick_coarse / V, silhouette_thick_share_coarse) from that many on coarse ones
+    (blended by coarse_share). It weakens both silhouette terms (rim and outside).
 
     Twenty masks at the weight of ten pull the rims the networks moved in back onto the masks and drag
     the surface behind them, which no mask holds, outward (the CAD parts' concave faces; the 20-view
@@ -658,7 +659,10 @@ def silhouette_thick_share(config: RefineConfig, num_views: int, mask_width: int
     halving on coarse masks took the 20-view validation set at 240x180 to CD 3.81 -> 3.63 and
     CDN-mean 7.28 -> 7.02 with every view >= 0.98 on 10 of 10 (9 before), and the 20-view test split
     (128x96) to CD 6.28 -> 6.02 and CDN-mean 8.89 -> 8.37, where three scenes' rounds stall a hair
-    below 0.98 (every view >= 0.98 on 56 -> 53 of 60; docs/history.md, session 66)."""
+    below 0.98 (every view >= 0.98 on 56 -> 53 of 60; docs/history.md, session 66). From
+    silhouette_views_thick_coarse views on, the coarse masks' share is at most silhouette_thick_share_coarse
+    (0.5): at 10 views on the test split CD 8.59 -> 8.46 and CDN-mean 11.57 -> 11.27 in more penalty rounds; at
+    5 views, where coarse masks pull twice as hard, nothing gained in CD (session 67)."""
     def share(threshold: int) -> float:
         return threshold / num_views if 0 < threshold < num_views else 1.0
 
