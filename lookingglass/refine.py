@@ -160,14 +160,15 @@ class RefineConfig:
                                               "the key's worst view held (docs/history.md, session 63).",
                                           range=(0, None))
     silhouette_views_thick_coarse: int = setting(10, "The same on coarse masks (coarse_share; between, blended; 0: "
-                                                     "never). 20 views at 240x180 (val240v20): CD 3.81 -> 3.63, "
+                                                     "never), from this many views on at most "
+                                                     "silhouette_thick_share_coarse. 20 views at 240x180 (val240v20): CD 3.81 -> 3.63, "
                                                      "CDN-mean 7.28 -> 7.02, every view >= 0.98 on 9 -> 10 of 10 "
                                                      "with the penalty rounds (docs/history.md, session 66).",
                                                  range=(0, None))
     silhouette_thick_share_coarse: float = setting(0.5, "The most of the silhouette weight parts at least "
                                                         "fair_thickness thick get on coarse masks from "
                                                         "silhouette_views_thick_coarse views on (1: no cap; 20 views: "
-                                                        "10 / 20 already). 10 views, the test split (128x96): CD "
+                                                        "10 / 20 already; 11-19 views not measured). 10 views, the test split (128x96): CD "
                                                         "8.59 -> 8.46, CDN-mean 11.57 -> 11.27, every view >= 0.98 on "
                                                         "58 -> 57 of 60 (docs/history.md, session 67).",
                                                    range=(0, 1))
@@ -536,7 +537,7 @@ def silhouette_weight(config: RefineConfig, mask_width: int, num_views: int | No
     config.silhouette_weight, scaled by (mask_width / silhouette_width)^silhouette_width_power below
     silhouette_width and by silhouette_views / num_views below silhouette_views views on full-width
     masks, silhouette_views_coarse / num_views below that many on coarse ones (blended by
-    coarse_share). Above silhouette_views_thick views (silhouette_views_thick_coarse on coarse masks)
+    coarse_share). Above silhouette_views_thick views (from silhouette_views_thick_coarse on coarse masks)
     the thick parts' share of it falls too (silhouette_vertex_shares).
 
     Width: a coarse mask's boundary is off by up to half a pixel, a larger share of the object, and a
@@ -652,7 +653,7 @@ def silhouette_thick_share(config: RefineConfig, num_views: int, mask_width: int
     and the silhouettes hold it. Spared, the key keeps it (`validate` on val480v20: CD 3.26 -> 3.14,
     CDN-mean 5.84 -> 5.79, the key's worst view 0.9803; session 63). At 10 views the same halving was
     level (val480 from the same surfaces: CD 4.28 -> 4.23, CDN-mean 7.69 -> 7.73), so 10 views and
-    fewer keep the whole weight; on 128x96 masks (test scenes 0-4 at 20 views) it lowered CD (10.20 ->
+    fewer keep the whole weight on full-width masks; on 128x96 masks (test scenes 0-4 at 20 views) it lowered CD (10.20 ->
     7.97 on scene 0) but cost the worst view (scene 3: 0.984 -> 0.971), where the weak silhouettes
     (0.38) already leave rims inside the masks, so until session 66 coarse masks kept all of it. The
     penalty rounds (silhouette_retries) since pull a view left short harder: with them the same
