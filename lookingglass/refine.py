@@ -161,16 +161,18 @@ class RefineConfig:
                                           range=(0, None))
     silhouette_views_thick_coarse: int = setting(10, "The same on coarse masks (coarse_share; between, blended; 0: "
                                                      "never), from this many views on at most "
-                                                     "silhouette_thick_share_coarse. 20 views at 240x180 (val240v20): CD 3.81 -> 3.63, "
-                                                     "CDN-mean 7.28 -> 7.02, every view >= 0.98 on 9 -> 10 of 10 "
-                                                     "with the penalty rounds (docs/history.md, session 66).",
+                                                     "silhouette_thick_share_coarse. 20 views at 240x180 (val240v20): "
+                                                     "CD 3.81 -> 3.63, CDN-mean 7.28 -> 7.02, every view >= 0.98 on "
+                                                     "9 -> 10 of 10 with the penalty rounds (docs/history.md, "
+                                                     "session 66).",
                                                  range=(0, None))
     silhouette_thick_share_coarse: float = setting(0.5, "The most of the silhouette weight parts at least "
                                                         "fair_thickness thick get on coarse masks from "
                                                         "silhouette_views_thick_coarse views on (1: no cap; 20 views: "
-                                                        "10 / 20 already; 11-19 views not measured). 10 views, the test split (128x96): CD "
-                                                        "8.59 -> 8.46, CDN-mean 11.57 -> 11.27, every view >= 0.98 on "
-                                                        "58 -> 57 of 60 (docs/history.md, session 67).",
+                                                        "10 / 20 already; 11-19 views not measured). 10 views, the "
+                                                        "test split (128x96): CD 8.59 -> 8.46, CDN-mean 11.57 -> "
+                                                        "11.27, every view >= 0.98 on 58 -> 57 of 60 (docs/history.md, "
+                                                        "session 67).",
                                                    range=(0, 1))
     silhouette_retries: int = setting(2, "Rounds the stage reruns from its input while a view's silhouette IoU (the kept "
                                          "mesh's, a view of full weight) is below silhouette_iou_target, that view's "
@@ -537,8 +539,8 @@ def silhouette_weight(config: RefineConfig, mask_width: int, num_views: int | No
     config.silhouette_weight, scaled by (mask_width / silhouette_width)^silhouette_width_power below
     silhouette_width and by silhouette_views / num_views below silhouette_views views on full-width
     masks, silhouette_views_coarse / num_views below that many on coarse ones (blended by
-    coarse_share). Above silhouette_views_thick views (from silhouette_views_thick_coarse on coarse masks)
-    the thick parts' share of it falls too (silhouette_vertex_shares).
+    coarse_share). Above silhouette_views_thick views (from silhouette_views_thick_coarse on coarse
+    masks) the thick parts' share of it falls too (silhouette_vertex_shares).
 
     Width: a coarse mask's boundary is off by up to half a pixel, a larger share of the object, and a
     rim pulled onto it takes its neighbourhood along. On scenes 1-6 of the 10-view test split
@@ -646,24 +648,24 @@ def silhouette_thick_share(config: RefineConfig, num_views: int, mask_width: int
     min(silhouette_views_thick_coarse / V, silhouette_thick_share_coarse) from that many on coarse ones
     (blended by coarse_share). It weakens both silhouette terms (rim and outside).
 
-    Twenty masks at the weight of ten pull the rims the networks moved in back onto the masks and drag
-    the surface behind them, which no mask holds, outward (the CAD parts' concave faces; the 20-view
-    test split's refined CD above its PNet surface's, docs/history.md session 58); all of it halved cost
-    the thin key its worst view (0.9862 -> 0.9784, session 59): the fairing shrinks a thin part first,
-    and the silhouettes hold it. Spared, the key keeps it (`validate` on val480v20: CD 3.26 -> 3.14,
-    CDN-mean 5.84 -> 5.79, the key's worst view 0.9803; session 63). At 10 views the same halving was
-    level (val480 from the same surfaces: CD 4.28 -> 4.23, CDN-mean 7.69 -> 7.73), so 10 views and
-    fewer keep the whole weight on full-width masks; on 128x96 masks (test scenes 0-4 at 20 views) it lowered CD (10.20 ->
-    7.97 on scene 0) but cost the worst view (scene 3: 0.984 -> 0.971), where the weak silhouettes
-    (0.38) already leave rims inside the masks, so until session 66 coarse masks kept all of it. The
-    penalty rounds (silhouette_retries) since pull a view left short harder: with them the same
-    halving on coarse masks took the 20-view validation set at 240x180 to CD 3.81 -> 3.63 and
-    CDN-mean 7.28 -> 7.02 with every view >= 0.98 on 10 of 10 (9 before), and the 20-view test split
-    (128x96) to CD 6.28 -> 6.02 and CDN-mean 8.89 -> 8.37, where three scenes' rounds stall a hair
-    below 0.98 (every view >= 0.98 on 56 -> 53 of 60; docs/history.md, session 66). From
-    silhouette_views_thick_coarse views on, the coarse masks' share is at most silhouette_thick_share_coarse
-    (0.5): at 10 views on the test split CD 8.59 -> 8.46 and CDN-mean 11.57 -> 11.27 in more penalty rounds; at
-    5 views, where coarse masks pull twice as hard, nothing gained in CD (session 67)."""
+    Twenty masks at the weight of ten pull the rims the networks moved in back onto the masks and drag the
+    surface behind them, which no mask holds, outward (the CAD parts' concave faces; the 20-view test
+    split's refined CD above its PNet surface's, docs/history.md session 58); all of it halved cost the thin
+    key its worst view (0.9862 -> 0.9784, session 59): the fairing shrinks a thin part first, and the
+    silhouettes hold it. Spared, the key keeps it (`validate` on val480v20: CD 3.26 -> 3.14, CDN-mean 5.84
+    -> 5.79, the key's worst view 0.9803; session 63). At 10 views the same halving was level (val480 from
+    the same surfaces: CD 4.28 -> 4.23, CDN-mean 7.69 -> 7.73), so 10 views and fewer keep the whole weight
+    on full-width masks; on 128x96 masks (test scenes 0-4 at 20 views) it lowered CD (10.20 -> 7.97 on scene
+    0) but cost the worst view (scene 3: 0.984 -> 0.971), where the weak silhouettes (0.38) already leave
+    rims inside the masks, so until session 66 coarse masks kept all of it. The penalty rounds
+    (silhouette_retries) since pull a view left short harder: with them the same halving on coarse masks
+    took the 20-view validation set at 240x180 to CD 3.81 -> 3.63 and CDN-mean 7.28 -> 7.02 with every view
+    >= 0.98 on 10 of 10 (9 before), and the 20-view test split (128x96) to CD 6.28 -> 6.02 and CDN-mean 8.89
+    -> 8.37, where three scenes' rounds stall a hair below 0.98 (every view >= 0.98 on 56 -> 53 of 60;
+    docs/history.md, session 66). From silhouette_views_thick_coarse views on, the coarse masks' share is at
+    most silhouette_thick_share_coarse (0.5): at 10 views on the test split CD 8.59 -> 8.46 and CDN-mean
+    11.57 -> 11.27 in more penalty rounds; at 5 views, where coarse masks pull twice as hard, nothing gained
+    in CD (session 67)."""
     def share(threshold: int) -> float:
         return threshold / num_views if 0 < threshold < num_views else 1.0
 

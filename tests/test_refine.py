@@ -753,7 +753,7 @@ def test_above_ten_views_the_thick_parts_pull_less_on_full_width_masks():
     assert np.allclose(silhouette_vertex_shares(coarse, 20, 128, *map(np.asarray, (ball.vertices, ball.faces))), 0.5)
     # the cap on coarse masks, from silhouette_views_thick_coarse views on: the lower of it and 10 / V
     capped = dataclasses.replace(both, silhouette_thick_share_coarse=0.5)
-    assert [silhouette_thick_share(capped, v, 128) for v in (5, 9, 10, 15, 20, 40)] == [1.0, 1.0, 0.5, 0.5, 0.5, 0.25]
+    assert [silhouette_thick_share(capped, v, 128) for v in (5, 9, 10, 15, 20, 40)] == [1, 1, 0.5, 0.5, 0.5, 0.25]
     assert [silhouette_thick_share(capped, v, 480) for v in (5, 10, 20, 40)] == [1.0, 1.0, 0.5, 0.25]
     assert np.isclose(silhouette_thick_share(capped, 10, 300), 0.625)  # coarse_share 0.75: 0.25 x 1 + 0.75 x 0.5
     assert silhouette_thick_share(dataclasses.replace(capped, silhouette_thick_share_coarse=0.3), 10, 240) == 0.3
