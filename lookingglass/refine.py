@@ -169,10 +169,10 @@ class RefineConfig:
     silhouette_thick_share_coarse: float = setting(0.5, "The most of the silhouette weight parts at least "
                                                         "fair_thickness thick get on coarse masks from "
                                                         "silhouette_views_thick_coarse views on (1: no cap; 20 views: "
-                                                        "10 / 20 already; 11-19 views not measured). 10 views, the "
-                                                        "test split (128x96): CD 8.59 -> 8.46, CDN-mean 11.57 -> "
-                                                        "11.27, every view >= 0.98 on 58 -> 57 of 60 (docs/history.md, "
-                                                        "session 67).",
+                                                        "10 / 20 already; 15 views at 240x180: CD 4.46 -> 4.33, "
+                                                        "session 68). 10 views, the test split (128x96): CD 8.59 -> "
+                                                        "8.46, CDN-mean 11.57 -> 11.27, every view >= 0.98 on 58 -> 57 "
+                                                        "of 60 (docs/history.md, session 67).",
                                                    range=(0, 1))
     silhouette_retries: int = setting(2, "Rounds the stage reruns from its input while a view's silhouette IoU (the kept "
                                          "mesh's, a view of full weight) is below silhouette_iou_target, that view's "
