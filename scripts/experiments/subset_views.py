@@ -7,9 +7,10 @@ Usage (docs/results.md, the 15-view figures of session 68: views 3, 7, 11, 15 an
 then `lookingglass validate --data data/val240v15 --out runs/val240v15 --device cpu`.
 """
 import argparse
-import json
 import os
 from pathlib import Path
+
+from lookingglass.fileio import read_json, resolved_path, write_json
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 parser.add_argument("src", type=Path, help="a validation set (index.json, one folder per shape)")
@@ -17,8 +18,10 @@ parser.add_argument("dst", type=Path, help="the new set's folder")
 parser.add_argument("--drop-every", type=int, default=4,
                     help="drop view i where i %% N == N - 1 (4: 20 views -> 15)")
 args = parser.parse_args()
+if resolved_path(args.dst) == resolved_path(args.src):
+    parser.error("dst must be another folder: the source set is never modified")
 
-index = json.loads((args.src / "index.json").read_text())
+index = read_json(args.src / "index.json", "validation set index")
 keep = [i for i in range(index["views"]) if i % args.drop_every != args.drop_every - 1]
 for name in index["shapes"]:
     scene_src, scene_dst = args.src / name / "scene", args.dst / name / "scene"
@@ -28,9 +31,9 @@ for name in index["shapes"]:
                          (args.dst / name / "ground_truth.ply", args.src / name / "ground_truth.ply")]:
         if not link.exists():
             os.symlink(target.resolve(), link)
-    spec = json.loads((scene_src / "scene.json").read_text())
+    spec = read_json(scene_src / "scene.json", "scene file")
     spec["views"] = [spec["views"][i] for i in keep]
-    (scene_dst / "scene.json").write_text(json.dumps(spec, indent=1))
+    write_json(scene_dst / "scene.json", spec)
 index.update(views=len(keep), derived_from=f"{args.src}, views {keep}")
-(args.dst / "index.json").write_text(json.dumps(index, indent=1))
+write_json(args.dst / "index.json", index)
 print(f"{args.dst}: {len(index['shapes'])} scenes, {len(keep)} views each ({keep})")
