@@ -237,6 +237,25 @@ def test_rounds_that_do_not_help_end_early(scene):
     assert result.report["silhouette_round"] == 0
 
 
+def stand_in_rounds(monkeypatch, worst, kept, config):
+    """`refine_surface` over stand-in rounds whose kept meshes' worst views are `worst` (view 0 the
+    worst in every round, the other three at 0.99), each the refined mesh or, where `kept` says so,
+    the input: its result, and each round's view factors (boost)."""
+    import lookingglass.refine as refine
+
+    V, calls = 4, []
+    kept = kept or ["refined"] * len(worst)
+
+    def one_round(mesh, hull, masks, cameras, config, weights, boost, capture, normals, start):
+        calls.append(boost.copy())
+        return SimpleNamespace(report={"kept": kept[len(calls) - 1], "seconds": 1.0}, casts=len(calls) - 1)
+
+    monkeypatch.setattr(refine, "_refine_once", one_round)
+    monkeypatch.setattr(refine, "cast_iou", lambda casts, masks: np.array([worst[casts], 0.99, 0.99, 0.99]))
+    result = refine_surface(None, SimpleNamespace(view_coverage=np.ones(V)), np.zeros((V, 2, 2), bool), None, config)
+    return result, calls
+
+
 @pytest.mark.parametrize("worst, rounds, returned, ended, kept", [
     ([0.95, 0.985], 2, 1, "target met", None),
     ([0.95, 0.97, 0.975], 3, 2, "rounds spent", None),
@@ -254,21 +273,9 @@ def test_the_rounds_run_while_they_raise_the_worst_view(monkeypatch, worst, roun
     a view is below the target, the retries last and the previous round raised the best worst view by
     more than silhouette_round_gain (0.001); of the rounds that keep their refined mesh (else of all)
     the one with the best worst view is returned."""
-    import lookingglass.refine as refine
-
-    V, calls = 4, []
-    kept = kept or ["refined"] * len(worst)
-
-    def one_round(mesh, hull, masks, cameras, config, weights, boost, capture, normals, start):
-        calls.append(boost.copy())
-        return SimpleNamespace(report={"kept": kept[len(calls) - 1], "seconds": 1.0}, casts=len(calls) - 1)
-
-    monkeypatch.setattr(refine, "_refine_once", one_round)
-    # view 0 is the worst in every round, the others at 0.99
-    monkeypatch.setattr(refine, "cast_iou", lambda casts, masks: np.array([worst[casts], 0.99, 0.99, 0.99]))
     config = RefineConfig(silhouette_retry_backoff=False)  # the back-off: the next test
     assert config.silhouette_retries == 2 and config.silhouette_round_gain == 0.001
-    result = refine_surface(None, SimpleNamespace(view_coverage=np.ones(V)), np.zeros((V, 2, 2), bool), None, config)
+    result, calls = stand_in_rounds(monkeypatch, worst, kept, config)
     assert len(calls) == rounds and result.casts == returned
     assert result.report["silhouette_round"] == returned and result.report["silhouette_rounds_ended"] == ended
     assert [r["worst_iou"] for r in result.report["silhouette_rounds"]] == worst[:rounds]
@@ -277,6 +284,8 @@ def test_the_rounds_run_while_they_raise_the_worst_view(monkeypatch, worst, roun
 
 
 R3 = 3.0 ** 0.5
+
+
 @pytest.mark.parametrize("worst, retries, boosts, returned, ended, kept", [
     # a round that overshoots (val480's key at 3 x: 0.9795 -> 0.9774) is followed by one from the best
     # round with the factor's square root, not by the end
@@ -300,20 +309,9 @@ def test_a_round_that_overshoots_is_retried_more_mildly(monkeypatch, worst, retr
     that does not raise the best worst view is followed, once, by a round from the best round's
     factors with the short views' factor's square root, returned only where it meets the target;
     the rounds then go on at that factor."""
-    import lookingglass.refine as refine
-
-    V, calls = 4, []
-    kept = kept or ["refined"] * len(worst)
-
-    def one_round(mesh, hull, masks, cameras, config, weights, boost, capture, normals, start):
-        calls.append(boost.copy())
-        return SimpleNamespace(report={"kept": kept[len(calls) - 1], "seconds": 1.0}, casts=len(calls) - 1)
-
-    monkeypatch.setattr(refine, "_refine_once", one_round)
-    monkeypatch.setattr(refine, "cast_iou", lambda casts, masks: np.array([worst[casts], 0.99, 0.99, 0.99]))
     config = RefineConfig(silhouette_retries=retries)
     assert config.silhouette_retry_backoff and config.silhouette_retry_factor == 3
-    result = refine_surface(None, SimpleNamespace(view_coverage=np.ones(V)), np.zeros((V, 2, 2), bool), None, config)
+    result, calls = stand_in_rounds(monkeypatch, worst, kept, config)
     assert len(calls) == len(boosts) and result.casts == returned
     assert result.report["silhouette_round"] == returned and result.report["silhouette_rounds_ended"] == ended
     np.testing.assert_allclose(np.array(calls), [[b, 1, 1, 1] for b in boosts], rtol=1e-12)
