@@ -192,9 +192,10 @@ class RefineConfig:
                                                   "silhouette weight by (3: 3 x, then 9 x).", range=(1, 100))
     silhouette_retry_backoff: bool = setting(True, "After a round that does not raise the worst view (silhouette_round_gain), "
                                                     "rerun once more from the best round's weights with the factor's square "
-                                                    "root instead of ending, while rounds remain: a 3 x pull can overshoot "
+                                                    "root instead of ending, while rounds remain, and return it only where "
+                                                    "every view reaches silhouette_iou_target: a 3 x pull can overshoot "
                                                     "where a milder one lands (val480's key: 0.9795, then 0.9774 at 3 x, "
-                                                    "0.983 at 2 x; docs/history.md, session 69).")
+                                                    "0.9830 at the square root; docs/history.md, session 69).")
     silhouette_iou_target: float = setting(0.98, "The silhouette IoU below which a view pulls harder in the next "
                                                  "round (silhouette_retries; issue 25's bar).", range=(0, 1))
     field_blur_px: float = setting(0.0, "Gaussian blur (sigma, pixels) of the masks' signed-distance fields the "
