@@ -1019,7 +1019,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     rounds, best, best_rank, best_index, best_worst = [], None, (False, -1.0), 0, -1.0
     start: dict = {}  # what every round starts from (filled by the first)
     trusted = weights >= 1
-    factor, backed_off, backoff_index = config.silhouette_retry_factor, False, -1
+    factor, backed_off, milder = config.silhouette_retry_factor, False, False  # milder: this round is the back-off
     best_boost, best_short = boost, np.zeros(V, bool)  # the best round's factors and short views
     for index in range(config.silhouette_retries + 1):
         result = _refine_once(mesh, hull, masks, cameras, config, weights, boost, capture, normals, start)
@@ -1034,7 +1034,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         # a backed-off round is returned only where it lands every view on the target: short of it, the
         # milder pull still trades normals for IoU (10-view test scene 0: worst view 0.9665 -> 0.9685,
         # CDN-mean 7.52 -> 7.98 degrees; session 69)
-        eligible = not (backed_off and index == backoff_index) or not short.any()
+        eligible = not milder or not short.any()
         if rank > best_rank and eligible:
             best, best_rank, best_index = result, rank, index
         if not stalled:  # the base a backed-off round starts from
@@ -1046,10 +1046,10 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         if ended:
             break
         if stalled:  # that pull overshot: once more from the best round, pulling its short views more mildly
-            factor, backed_off, backoff_index = float(np.sqrt(factor)), True, index + 1
+            factor, backed_off, milder = float(np.sqrt(factor)), True, True
             boost = np.where(best_short, best_boost * factor, best_boost)
         else:
-            boost = np.where(short, boost * factor, boost)
+            milder, boost = False, np.where(short, boost * factor, boost)
     if len(rounds) > 1:
         best.report.update(silhouette_rounds=rounds, silhouette_round=best_index,
                            silhouette_rounds_ended=ended or "rounds spent")
