@@ -72,9 +72,8 @@ def test_reconstruct_and_eval_shapes_give_the_same_mesh(scene, tmp_path):
     dataset, root = scene
     config = PipelineConfig(device="cpu")
     config.surface.points, config.normals.latent = 4096, LatentOptConfig(0, 0)  # fast; the path is the same
-    # a quarter of the vertices, a quarter of the normal term's steps, two silhouette rounds (this scene's first
-    # leaves a view short of 0.98, so the second runs: the rounds' bookkeeping is on the path too)
-    config.refine = dataclasses.replace(config.refine, edge_length=0.03, normal_iterations=4, silhouette_retries=1)
+    # a quarter of the vertices, a quarter of the normal term's steps
+    config.refine = dataclasses.replace(config.refine, edge_length=0.03, normal_iterations=4)
     reconstruct(root / "scene", tmp_path / "out", config)
     gt = dataset.meshes(0)[0]
     # the surface stage's mesh, and the refine stage's (mesh.ply)
@@ -100,7 +99,7 @@ def test_reconstruct_and_eval_shapes_give_the_same_mesh(scene, tmp_path):
         # from call to call and the refine stage grew that: refined Metro 12.11 / 13.10 over two runs)
         assert record["refined"][metric] == pytest.approx(ours_refined[metric], rel=2e-2), metric
     assert record["refined"]["kept"] == refine["kept"]
-    assert record["refined"]["rounds"] == len(refine["silhouette_rounds"]) == 2
+    assert record["refined"]["rounds"] == len(refine.get("silhouette_rounds", [None]))
     assert record["refined"]["round"] == refine.get("silhouette_round", 0)
     # the kept mesh's worst view, as the refine stage reported it
     chosen = refine["silhouette_iou_after" if refine["kept"] == "refined" else "silhouette_iou_before"]
