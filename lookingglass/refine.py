@@ -1045,9 +1045,9 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         ended = "target met" if not short.any() else None
         if stalled and (backed_off or not config.silhouette_retry_backoff):
             ended = ended or "stalled"
-        # a back-off may follow the last of the retries when that one stalls: one round over them (10-view
+        # the retries spent, unless the last of them stalled: its back-off is one round over them (10-view
         # test scene 3: 0.9790, then 0.9795 at 9 x, 0.9800 at 3 x sqrt(3); session 70)
-        elif index >= config.silhouette_retries and not (stalled and index == config.silhouette_retries):
+        elif index >= config.silhouette_retries and not stalled:
             ended = ended or "rounds spent"
         if ended:
             break
