@@ -4,9 +4,12 @@ import json
 import math
 
 import pytest
+import torch
 
 from lookingglass.data.torch_dataset import TransparentSceneDataset
-from lookingglass.metrics import shape_metrics
+from lookingglass.metrics import normal_angle_errors, shape_metrics
+from lookingglass.normals.evaluate import traced_targets
+from lookingglass.normals.train import normal_targets
 from lookingglass.weights import shipped_weights
 
 from test_cli import run
@@ -225,3 +228,24 @@ def test_eval_shapes_takes_the_refine_settings(tmp_path, monkeypatch):
         assert result.exit_code != 0 and "drop --no-refine" in str(result.exception), result.output
     result = runner.invoke(cli.app, [*base, "--no-refine"])
     assert result.exit_code == 0, result.output
+
+
+def test_eval_normals_scores_a_split_rendered_larger_than_the_net(tmp_path):
+    """A split rendered at twice the net's size (as a capture is; the nets run at 128x96) was an
+    IndexError: each row is now scored against the truth at its own size, traced from the
+    ground-truth mesh, which at the stored size gives the renderer's stored maps."""
+    root = tmp_path / "larger"
+    run("generate", "--out", root, "--scenes", 1, "--split", "test", "--width", 256, "--height", 192,
+        "--workers", 1, "--quiet")
+    dataset = TransparentSceneDataset(root, "test")
+    meta, stored = dataset.meta(0), normal_targets(dataset[0])
+    traced = traced_targets(dataset.meshes(0)[0], dataset.capture(0).cameras, meta["ior"], meta["ext_ior"])
+    assert torch.equal(traced["mask"], stored["mask"]) and torch.equal(traced["n2_valid"], stored["n2_valid"])
+    for key, where in (("n1", stored["mask"]), ("n2", stored["n2_valid"])):  # float16 storage: ~0.03 degrees
+        assert normal_angle_errors(traced[key], stored[key], where, channel_axis=1)["mean"] < 0.05, key
+    proc = run("eval-normals", "--data", root, "--weights", f"wr+cv={shipped_weights(10)[0]}",
+               "--latent-iterations", 2, "--quiet")
+    rows = table_rows(proc.stdout)
+    assert list(rows) == ["vh", "wr+cv", "wr+cv+op", "gt"]
+    assert rows["gt"][:4] == [0.0] * 4 and 0 < rows["gt"][4] < rows["vh"][4]
+    assert all(0 < v < 90 for numbers in (rows["vh"], rows["wr+cv"]) for v in numbers[:4])

@@ -21,6 +21,7 @@ import torch
 
 from ..parallel import map_scenes
 from ..progress import Reporter
+from ..render.tracer import trace_two_bounce
 from ..weights import DEFAULT_ENVMAP_HEIGHT, load_normal_net
 from .inputs import NormalInputs
 from .latent import LatentOptConfig
@@ -117,7 +118,20 @@ class _NormalEvaluation:
         """i and every row's errors on test scene i, on `reconstruct`'s path: the inputs are made
         from the scene as a capture and its hull (`NormalInputs.from_capture`)."""
         capture, hull = self.dataset.capture(i, self.ior), self.dataset.hull(i)
-        truth = normal_targets(self.dataset[i], self.device)
+        stored = normal_targets(self.dataset[i], self.device)
+        truths = {tuple(stored["mask"].shape[1:]): stored}
+
+        def truth_at(width: int, height: int) -> dict:
+            """The ground truth at a net's size: the stored maps where the dataset was rendered at
+            it, else traced from the ground-truth mesh (a split rendered at a capture's 480x360, the
+            nets at 128x96), so every row is scored at the size it was made."""
+            if (height, width) not in truths:
+                meta = self.dataset.meta(i)
+                truths[(height, width)] = traced_targets(self.dataset.meshes(i)[0],
+                                                         capture.cameras.with_resolution(width, height),
+                                                         float(meta["ior"]), float(meta["ext_ior"]), self.device)
+            return truths[(height, width)]
+
         made: dict[tuple, NormalInputs] = {}  # nets of one size and map height share their inputs
 
         def inputs(width: int, height: int, envmap_height: int) -> NormalInputs:
@@ -135,9 +149,14 @@ class _NormalEvaluation:
             for row, latent in runs:
                 start = time.perf_counter()
                 maps = predict_normals(w.net, x, latent)
-                rows.setdefault(row, NormalErrors()).add(maps, truth, time.perf_counter() - start)
-        H, W = truth["mask"].shape[1:]  # the hull's and the truth's rows at the truth's resolution
-        x = inputs(W, H, next(iter(self.nets.values())).envmap_height if self.nets else DEFAULT_ENVMAP_HEIGHT)
+                rows.setdefault(row, NormalErrors()).add(maps, truth_at(w.net.cfg.width, w.net.cfg.height),
+                                                         time.perf_counter() - start)
+        # the hull's and the truth's rows where the (first) net is scored, so their ratios compare
+        # like with like; without nets at the dataset's size
+        first = next(iter(self.nets.values()), None)
+        H, W = (first.net.cfg.height, first.net.cfg.width) if first else stored["mask"].shape[1:]
+        truth = truth_at(W, H)
+        x = inputs(W, H, first.envmap_height if first else DEFAULT_ENVMAP_HEIGHT)
         rows["vh"] = NormalErrors()
         rows["vh"].add(render_normals(x, x.vh_n1, x.vh_n2), truth)
         # The ground truth's own render error, a reference: the two-bounce layer cannot render the
@@ -145,6 +164,15 @@ class _NormalEvaluation:
         rows["gt"] = NormalErrors()
         rows["gt"].add(render_normals(x, truth["n1"].permute(0, 2, 3, 1), truth["n2"].permute(0, 2, 3, 1)), truth)
         return i, rows
+
+
+def traced_targets(mesh, cameras, ior: float, ext_ior: float, device: str = "cpu") -> dict:
+    """`normal_targets`' dict for `mesh` (the ground truth, world frame) seen by `cameras`, traced at
+    the pixel centres as the dataset's own maps are (`trace_two_bounce`)."""
+    tb = trace_two_bounce(mesh, cameras, ior, ext_ior, threads=1)
+    mask = tb.mask.to(device)
+    return dict(n1=tb.normal1.permute(0, 3, 1, 2).to(device), n2=tb.normal2.permute(0, 3, 1, 2).to(device),
+                mask=mask, n2_valid=tb.valid.to(device) & mask)
 
 
 def markdown_table(results: dict[str, dict]) -> str:
