@@ -7,7 +7,9 @@ Statistics pool every pixel of every view of every scene: N1 over the object mas
 pixels whose true path has exactly two interfaces (the dataset's `valid`), render error over the
 mask (mean squared difference of the rendering layer's image, clipped to [0, 1] like the
 normalized input, and that input, x 1e-2
-in the table, as the paper reports it).
+in the table, as the paper reports it). Each row is scored at the size it is made (the nets' own;
+the hull's and the truth's rows at the first net's): a split rendered at another size, as a
+capture's 480x360, has its truth traced from the ground-truth mesh there.
 """
 
 from __future__ import annotations
