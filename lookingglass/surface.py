@@ -185,7 +185,7 @@ def signed_distance_grid(mesh: trimesh.Trimesh, pitch: float, margin: int, sampl
     shape = np.ceil((mesh.bounds[1] + margin * pitch - lo) / pitch).astype(int) + 1
     # enough samples that every cell the surface crosses holds one and the band separates inside
     # from outside (a floor of 1 000 000 until session 72 gave the same closings within the
-    # sampling noise, CD 0.6-1.1 x 1e-4 between them, in ~1.6 x the time)
+    # sampling noise, CD 0.6-1.1 x 1e-4 between them, in 1.2-1.7 x the time)
     samples = max(int(samples), int(SAMPLES_PER_CELL * mesh.area / pitch ** 2))
     points, face_index = trimesh.sample.sample_surface(mesh, samples, seed=seed)
     normals = mesh.face_normals[face_index]
