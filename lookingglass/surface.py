@@ -227,7 +227,7 @@ def close_narrow_tunnels(mesh: trimesh.Trimesh, pitch: float, radius: int, sampl
     filled in: a morphological closing of its solid by a ball of `radius` grid steps, on a grid of
     spacing `pitch`, re-meshed by marching cubes. Elsewhere the surface is kept to a small fraction
     of `pitch`: the grid holds the signed distance to the tangent plane of the nearest of `samples`
-    surface samples, not a 0/1 occupancy.
+    surface samples (at least SAMPLES_PER_CELL a grid cell's area of surface), not a 0/1 occupancy.
 
     Why: where PNet's displacement pushes two facing sheets of points through each other, screened
     Poisson opens tunnels narrower than the point spacing. They change the genus (wrong topology)

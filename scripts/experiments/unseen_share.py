@@ -26,11 +26,15 @@ from lookingglass.metrics import CD_UNIT, DEFAULT_SAMPLES, normalization_transfo
 UNSEEN = 0.05  # distance (the ground truth in the unit sphere) from the hull's surface beyond which no silhouette constrains the object
 
 
-def parts(mesh, truth_points, unseen, centre, scale) -> list[float]:
-    """[CD, the part of it from the unseen ground-truth samples] of `mesh` against the ground truth's samples."""
+def normalized_samples(mesh, centre, scale, seed: int) -> np.ndarray:
+    """`shape_metrics`' samples of `mesh` in the ground truth's unit-sphere frame."""
     moved = mesh.copy()
     moved.vertices = (np.asarray(mesh.vertices) - centre) / scale
-    points, _ = sample_surface(moved, DEFAULT_SAMPLES, seed=np.random.SeedSequence(3))
+    return sample_surface(moved, DEFAULT_SAMPLES, seed=np.random.SeedSequence(seed))[0]
+
+
+def parts(points: np.ndarray, truth_points: np.ndarray, unseen: np.ndarray) -> list[float]:
+    """[CD, the part of it from the unseen ground-truth samples] of a mesh's samples against the ground truth's."""
     to_mesh = cKDTree(points).query(truth_points)[0] ** 2
     to_truth = cKDTree(truth_points).query(points)[0] ** 2
     return [float(0.5 * (to_mesh.mean() + to_truth.mean()) * CD_UNIT),
@@ -58,23 +62,19 @@ def main() -> None:
         point_net = load_point_net(shipped_weights(views, "points")[0])
     rows = []
     for i in indices:
-        truth = ds.meshes(i)[0]
+        truth, hull = ds.meshes(i)[0], ds.hull(i)
         centre, scale = normalization_transform(truth)
-        moved = truth.copy()
-        moved.vertices = (np.asarray(truth.vertices) - centre) / scale
-        truth_points, _ = sample_surface(moved, DEFAULT_SAMPLES, seed=np.random.SeedSequence(1))
-        hull = ds.hull(i)
-        hull_points = (np.asarray(sample_surface(hull.mesh, DEFAULT_SAMPLES, seed=np.random.SeedSequence(3))[0])
-                       - centre) / scale
+        truth_points = normalized_samples(truth, centre, scale, seed=1)
+        hull_points = normalized_samples(hull.mesh, centre, scale, seed=3)
         unseen = cKDTree(hull_points).query(truth_points)[0] > UNSEEN
-        row = {"index": i, "hull": parts(hull.mesh, truth_points, unseen, centre, scale)}
+        row = {"index": i, "hull": parts(hull_points, truth_points, unseen)}
         if args.stages:
             capture = ds.capture(i)
             normals = run_normal_stage(capture, hull.mesh, normal_net, None)
             surface, _ = surface_from_normals(hull, normals.maps, SurfaceConfig(), point_net)
             refined = refine_stage(capture, hull, surface, normal_net, RefineConfig()).refined
-            row["surface"] = parts(surface, truth_points, unseen, centre, scale)
-            row["refined"] = parts(refined, truth_points, unseen, centre, scale)
+            for name, mesh in (("surface", surface), ("refined", refined)):
+                row[name] = parts(normalized_samples(mesh, centre, scale, seed=3), truth_points, unseen)
             print(json.dumps(row), flush=True)
         rows.append(row)
     for name in [k for k in rows[0] if k != "index"]:
