@@ -15,8 +15,8 @@ import trimesh
 from lookingglass.points import model as pm
 from lookingglass.presets import preset
 from lookingglass.points.features import FEATURE_COLUMNS, NUM_FEATURES, PAPER_FEATURES
-from lookingglass.points.losses import (LOSSES, chamfer_loss, nearest_l2_loss, view_dependent_l2_loss,
-                                        view_targets)
+from lookingglass.points.losses import (LOSSES, chamfer_loss, nearest_l2_loss, unseen_weights,
+                                        view_dependent_l2_loss, view_targets)
 from lookingglass.points.model import (PointNet, PointNetConfig, ball_members, ball_query, cpu_config,
                                        farthest_point_sample, group, interpolate, paper_config,
                                        parameter_count, three_nn)
@@ -285,6 +285,39 @@ def test_chamfer_brute_force(squared, reduction):
     expect = np.mean(totals, axis=0)
     for got, want in zip(out, expect):
         assert got.item() == pytest.approx(want, rel=1e-10)
+
+
+def test_unseen_weights_ramp_with_the_distance_to_the_hull():
+    """Hull samples on the plane z = 0; ground truth at depths 0 (on the hull), 0.05 (the ramp's
+    start), 0.075 (half way), 0.1 and 0.3 (full weight) below it."""
+    xy = torch.stack(torch.meshgrid(torch.linspace(-1, 1, 41, dtype=torch.float64),
+                                    torch.linspace(-1, 1, 41, dtype=torch.float64), indexing="ij"), -1).reshape(-1, 2)
+    hull = torch.cat([xy, torch.zeros(len(xy), 1, dtype=torch.float64)], -1)[None]
+    depth = torch.tensor([0.0, 0.05, 0.075, 0.1, 0.3], dtype=torch.float64)
+    gt = torch.stack([torch.full_like(depth, 0.2), torch.full_like(depth, -0.4), -depth], -1)[None]  # on grid nodes
+    w = unseen_weights(gt, hull, 8.0, 0.05)
+    np.testing.assert_allclose(w[0].numpy(), [1.0, 1.0, 5.0, 9.0, 9.0], atol=1e-12)
+
+
+def test_chamfer_gt_weights_are_a_weighted_mean_of_the_q_side():
+    g = torch.Generator().manual_seed(17)
+    p, n = _random_cloud(g, 2, 7)
+    q, nq = _random_cloud(g, 2, 5)
+    plain = chamfer_loss(p, n, q, nq)
+    ones = chamfer_loss(p, n, q, nq, gt_weights=torch.ones(2, 5, dtype=torch.float64))
+    for a, b in zip(plain, ones):  # all weights equal: the paper's loss exactly
+        assert a.item() == pytest.approx(b.item(), rel=1e-12)
+    w = 1 + torch.rand(2, 5, generator=g, dtype=torch.float64) * 4
+    out = chamfer_loss(p, n, q, nq, gt_weights=w)
+    P, N, Q, NQ, W = (t.numpy() for t in (p, n, q, nq, w))
+    points, normals = [], []
+    for b in range(2):
+        f, r = _nearest(P[b], Q[b]), _nearest(Q[b], P[b])
+        wm = lambda v: (W[b] * v).sum() / W[b].sum()  # noqa: E731
+        points.append(0.5 * (((P[b] - Q[b, f]) ** 2).sum(-1).mean() + wm(((Q[b] - P[b, r]) ** 2).sum(-1))))
+        normals.append(0.5 * (((N[b] - NQ[b, f]) ** 2).sum(-1).mean() + wm(((NQ[b] - N[b, r]) ** 2).sum(-1))))
+    assert out.point.item() == pytest.approx(np.mean(points), rel=1e-10)
+    assert out.normal.item() == pytest.approx(np.mean(normals), rel=1e-10)
 
 
 def test_chamfer_zero_on_identical_sets_and_gradients():

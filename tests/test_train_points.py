@@ -164,6 +164,8 @@ def test_view_loss_targets(tiny, tmp_path):
         PointTrainConfig(loss="view", strategy="AV")
     with pytest.raises(LookingGlassError, match="unknown point loss"):
         PointTrainConfig(loss="nope")
+    with pytest.raises(LookingGlassError, match="unseen-weight"):
+        PointTrainConfig(loss="nearest", unseen_weight=4.0)
     assert preset("cpu").point_training.net.num_points == 4096
 
 

@@ -64,7 +64,7 @@ from ..progress import Reporter
 from ..threads import torch_threads
 from ..weights import load_normal_net
 from .features import FEATURE_COLUMNS, NUM_FEATURES, STRATEGIES, map_features, sample_hull_points
-from .losses import LOSSES, PointLoss, view_targets
+from .losses import LOSSES, PointLoss, unseen_weights, view_targets
 from .model import PointNet, PointNetConfig
 
 __all__ = [
@@ -106,6 +106,11 @@ class PointTrainConfig:
     ior: float = setting(IOR_GLASS, "Index of refraction of the glass.", range=(1.0, 3.0))
     init: str = setting("", "Start from these weights.safetensors (fine-tuning; same network config) instead of "
                             "a random initialization.")
+    unseen_weight: float = setting(0.0, "Chamfer loss: extra weight on ground truth the hull spans (farther than "
+                                        "--unseen-distance from its surface), so PNet learns to carve concavities no "
+                                        "silhouette shows (0: the paper's loss).", range=(0, None))
+    unseen_distance: float = setting(0.05, "Chamfer loss: where --unseen-weight starts (hull-normalized frame); it "
+                                           "reaches its full value at twice this.", range=(0, None))
 
     def __post_init__(self) -> None:
         self.strategy = str(self.strategy).upper()
@@ -116,6 +121,9 @@ class PointTrainConfig:
                               f"(choose from {', '.join(STRATEGIES)})")
         if self.loss == "view" and self.strategy == "AV":
             raise ConfigError('the "view" loss needs a strategy that chooses a view (NE or RE), not AV')
+        if self.unseen_weight > 0 and self.loss != "chamfer":
+            raise ConfigError(f'--unseen-weight weighs the Chamfer loss\'s ground-truth samples; the {self.loss!r} '
+                              'loss has none')
         check_ranges(self)
 
 
@@ -223,8 +231,10 @@ def prepare_features(dataset, run_dir: str | os.PathLike, config: PointTrainConf
 
 
 # ---- the loss of one step ---------------------------------------------------------------------------
-def point_loss(name: str, points: Tensor, normals: Tensor, targets: dict[str, Tensor]) -> PointLoss:
+def point_loss(name: str, points: Tensor, normals: Tensor, targets: dict[str, Tensor],
+               gt_weights: Tensor | None = None) -> PointLoss:
     """LOSSES[name] on predictions points, normals (B, N, 3) and the cached targets (B, ., 3).
+    gt_weights: the Chamfer loss's per-sample weights (`losses.unseen_weights`), None for none.
 
     For "nearest" (and "view"'s fallback) the targets are the exact closest GT points to the
     hull points, precomputed; they are passed as both the GT set and the query of the loss's
@@ -233,7 +243,7 @@ def point_loss(name: str, points: Tensor, normals: Tensor, targets: dict[str, Te
     """
     loss = LOSSES[name]
     if name == "chamfer":
-        return loss(points, normals, targets["gt_points"], targets["gt_normals"])
+        return loss(points, normals, targets["gt_points"], targets["gt_normals"], gt_weights=gt_weights)
     near_p, near_n = targets["nearest_points"], targets["nearest_normals"]
     if name == "nearest":
         return loss(points, normals, near_p, near_n, hull_points=near_p)
@@ -276,10 +286,14 @@ def train_points(dataset, run_dir: str | os.PathLike, config: PointTrainConfig, 
             batch = {k: torch.from_numpy(arrays[k]).unsqueeze(0).to(device) for k in keys}
             features = batch["features"]  # (1, N, NUM_FEATURES)
             offset, normal = model(features)
-            loss = point_loss(config.loss, features[..., xyz] + offset, normal, batch)
+            weights = None
+            if config.unseen_weight > 0:
+                weights = unseen_weights(batch["gt_points"], features[..., xyz], config.unseen_weight,
+                                         config.unseen_distance)
+            loss = point_loss(config.loss, features[..., xyz] + offset, normal, batch, weights)
             with torch.no_grad():  # the input itself: hull points with the mapped normals
                 base = point_loss(config.loss, features[..., xyz], F.normalize(features[..., mapped_normal], dim=-1),
-                                  batch)
+                                  batch, weights)
             return loss.total, {"loss_point": float(loss.point.detach()), "loss_normal": float(loss.normal.detach()),
                                 "loss_input": float(base.total)}
 
