@@ -6,6 +6,7 @@ Usage:
     .venv/bin/python scripts/experiments/unseen_share.py DATA                  # the stored hulls only (~1 min)
     .venv/bin/python scripts/experiments/unseen_share.py DATA --stages 0,2,4   # also the PNet surface and the
                                                                               # refined mesh of these scenes
+    ... --stages 0,2,4 --point-weights W.safetensors --no-refine              # another PNet's surface only
 Per scene (with --stages) one JSON line {"index", "hull": [CD, unseen part], "surface": [...], "refined": [...]}; then
 the means. The CD here is `shape_metrics`' (x 1e4, 20 000 samples a mesh) with its own sampling seeds, so it differs
 from eval-shapes' by the sampling noise; the split into the two parts is exact within it. Run two processes on
@@ -46,6 +47,8 @@ def main() -> None:
     parser.add_argument("data")
     parser.add_argument("--stages", default="", help="scene indices to run through the normal stage, PNet and the "
                                                      "refine stage as eval-shapes does (default: hulls only, all)")
+    parser.add_argument("--point-weights", default="", help="PNet weights (default: the shipped ones)")
+    parser.add_argument("--no-refine", action="store_true", help="with --stages: the PNet surface only")
     args = parser.parse_args()
     warnings.simplefilter("ignore")
     torch.set_num_threads(1)
@@ -59,7 +62,7 @@ def main() -> None:
         from lookingglass.refine import RefineConfig
         from lookingglass.weights import load_normal_net, load_point_net, shipped_weights
         normal_net = load_normal_net(shipped_weights(views)[0])
-        point_net = load_point_net(shipped_weights(views, "points")[0])
+        point_net = load_point_net(args.point_weights or shipped_weights(views, "points")[0])
     rows = []
     for i in indices:
         truth, hull = ds.meshes(i)[0], ds.hull(i)
@@ -72,8 +75,10 @@ def main() -> None:
             capture = ds.capture(i)
             normals = run_normal_stage(capture, hull.mesh, normal_net, None)
             surface, _ = surface_from_normals(hull, normals.maps, SurfaceConfig(), point_net)
-            refined = refine_stage(capture, hull, surface, normal_net, RefineConfig()).refined
-            for name, mesh in (("surface", surface), ("refined", refined)):
+            meshes = [("surface", surface)]
+            if not args.no_refine:
+                meshes.append(("refined", refine_stage(capture, hull, surface, normal_net, RefineConfig()).refined))
+            for name, mesh in meshes:
                 row[name] = parts(normalized_samples(mesh, centre, scale, seed=3), truth_points, unseen)
             print(json.dumps(row), flush=True)
         rows.append(row)
