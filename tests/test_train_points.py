@@ -79,6 +79,29 @@ def test_training_caches_features_lowers_loss_and_ships_weights(tiny, tmp_path):
         load_point_net(normals).net
 
 
+def test_unseen_weight_weighs_the_input_loss_as_the_step_does(tiny, tmp_path):
+    """--unseen-weight: the logged loss of the untouched input is the weighted Chamfer loss of the cached hull points
+    (with the weights `unseen_weights` gives them), recomputed here from the cache; 0 is the paper's loss."""
+    from lookingglass.points.losses import chamfer_loss, unseen_weights
+    data, normals = tiny
+    ds = TransparentSceneDataset(data, "train", augment=False)
+    cfg = dataclasses.replace(_config(epochs=1), lr=0.0, unseen_weight=8.0, unseen_distance=0.02)
+    train_points(ds, tmp_path / "w", cfg, normals)
+    xyz, mapped = FEATURE_COLUMNS["point"], FEATURE_COLUMNS["normal"]
+    want = {}
+    for weight in (8.0, 0.0):
+        totals = []
+        for path in sorted((tmp_path / "w" / "features").glob("scene_*.npz")):
+            with np.load(path) as z:
+                f, q, nq = (torch.from_numpy(z[k])[None] for k in ("features", "gt_points", "gt_normals"))
+            w = unseen_weights(q, f[..., xyz], weight, 0.02)
+            totals.append(chamfer_loss(f[..., xyz], torch.nn.functional.normalize(f[..., mapped], dim=-1), q, nq,
+                                       gt_weights=w).total.item())
+        want[weight] = float(np.mean(totals))
+    assert _log(tmp_path / "w")[0]["loss_input"] == pytest.approx(want[8.0], rel=1e-5)
+    assert want[8.0] > 1.02 * want[0.0]  # these coarse hulls span some ground truth (+3.5%): the weights act
+
+
 def test_resume_after_interruption_is_exact(tiny, tmp_path):
     data, normals = tiny
     ds = TransparentSceneDataset(data, "train", augment=False)
