@@ -100,6 +100,8 @@ def test_unseen_weight_weighs_the_input_loss_as_the_step_does(tiny, tmp_path):
         want[weight] = float(np.mean(totals))
     assert _log(tmp_path / "w")[0]["loss_input"] == pytest.approx(want[8.0], rel=1e-5)
     assert want[8.0] > 1.02 * want[0.0]  # these coarse hulls span some ground truth (+3.5%): the weights act
+    meta = json.loads((tmp_path / "w" / "weights.json").read_text())
+    assert (meta["unseen_weight"], meta["unseen_distance"]) == (8.0, 0.02)
 
 
 def test_resume_after_interruption_is_exact(tiny, tmp_path):

@@ -298,8 +298,11 @@ def train_points(dataset, run_dir: str | os.PathLike, config: PointTrainConfig, 
                                 "loss_input": float(base.total)}
 
         def weights_extra(steps: int) -> dict:
-            return {"kind": "points", "steps": steps, "loss": config.loss, "strategy": config.strategy,
-                    "normals_sha256": digest}
+            extra = {"kind": "points", "steps": steps, "loss": config.loss, "strategy": config.strategy,
+                     "normals_sha256": digest}
+            if config.unseen_weight > 0:
+                extra.update(unseen_weight=config.unseen_weight, unseen_distance=config.unseen_distance)
+            return extra
 
         return session.fit(lambda: PointNet(config.net), len(dataset), step, weights_extra=weights_extra,
                            labels={"loss_point": "points", "loss_normal": "normals", "loss_input": "input"},
