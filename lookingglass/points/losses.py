@@ -179,7 +179,8 @@ def unseen_weights(gt_points: Tensor, hull_points: Tensor, weight: float, distan
     farther than `distance` lies in a concavity the hull spans (a slot's walls and floor); its weight
     ramps from 1 at `distance` to 1 + `weight` at twice that. The nearest of N hull samples stands for
     the hull's surface: it overestimates the distance by up to half their spacing (~0.02 for 4096
-    samples in the hull-normalized frame), hence the ramp's start at 0.05, not 0.
+    samples in the hull-normalized frame), hence train-points' default start of 0.05, not 0. The
+    training step recomputes these each time (one k-d tree query, milliseconds) rather than cache them.
     """
     idx = knn(gt_points, hull_points, 1)[..., 0]
     d = (gt_points.detach() - gather_points(hull_points.detach(), idx)).norm(dim=-1)
