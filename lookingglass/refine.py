@@ -4,6 +4,9 @@ The networks' surface (PNet + screened Poisson) inherits PNet's per-point noise 
 inward shift, and nothing upstream checks it against the observations. This stage takes that
 surface (capture frame, closed) and, in the hull-normalized frame (max |p| = 1):
 
+0. where its silhouette spills out of a mask (a web the surface stage spans across a hole that a
+   mask shows open), intersects it with the visual hull first, by step 3's rule (`input_carve`,
+   `carve_input`);
 1. remeshes it to an even edge length (MeshLab's isotropic explicit remeshing);
 2. runs a few outer iterations, each of which linearizes the silhouette terms at the current
    vertices and solves one sparse linear least-squares problem for the vertex displacements
@@ -268,6 +271,13 @@ class RefineConfig:
                                      "spills out of a mask by more than carve_outside_share, and keep the carved mesh "
                                      "when it matches the masks better (mean IoU up by more than keep_tolerance) "
                                      "and re-renders the photos no worse than masks_better_rerender_tolerance allows.")
+    input_carve: bool = setting(True, "Intersect the stage's input (the surface) with the visual hull before "
+                                      "refining, by hull_carve's rule (its silhouette spills out of a mask by more "
+                                      "than carve_outside_share; kept where the masks agree better and the photos "
+                                      "allow). A web the surface spans across a hole that some mask shows drags the "
+                                      "hole's rim along under the silhouette pull, and no vertex move can open it. "
+                                      "5-view 480x360 test scenes 51 and 55: refined CD 22.87 -> 18.54 and 21.57 -> "
+                                      "18.68 (docs/history.md, session 74).")
     masks_better_rerender_tolerance: float = setting(
         0.05, "Where the masks say a mesh is better, its re-rendering of the photos may be worse by up to this share: "
               "the hull carve (mean IoU up by more than keep_tolerance) and the keep check's refined mesh (its worst "
@@ -943,6 +953,38 @@ def carve_by_hull(refined: trimesh.Trimesh, hull_mesh: trimesh.Trimesh, cameras:
     return (carved, cast_carved, report) if report["kept"] else (None, None, report)
 
 
+def carve_input(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cameras: Cameras, weights: np.ndarray,
+                config: RefineConfig, capture, start: dict) -> tuple[trimesh.Trimesh, dict]:
+    """The stage's input, intersected with the visual hull where `carve_by_hull` keeps that, and what
+    was measured. The surface stage can span a web across a hole or between parts that a mask shows
+    open (Poisson closes what PNet's points leave thin; 5-view test scene 55: genus 13 against the
+    object's 2, 8% of a mask spilled). The silhouette pull moves each vertex toward its nearest mask
+    boundary, so the web drags the hole's rim inward and no vertex move can open it; the hull carve
+    after refining then cuts the web but leaves the rim short of its mask (scene 55's worst view
+    0.960). Cut first, the rims start free. Seeds `start` with the kept input's casts and, where it
+    was rendered, its re-rendering (what every round reuses)."""
+    cast = object_masks(mesh, cameras)
+    start["input_casts"] = cast
+    prepared = start["photos"] = (photos_at(capture, config.rerender_width)
+                                  if capture is not None and config.rerender_width > 0 else None)
+    renders: dict = {}
+
+    def photo_error(m: trimesh.Trimesh) -> float:
+        renders[id(m)] = rerender(m, capture, prepared=prepared, samples_per_axis=config.rerender_samples)
+        return weighted_mean(renders[id(m)].error, weights)
+
+    carved, cast_carved, report = carve_by_hull(mesh, hull.mesh, cameras, masks, cast, weights, config,
+                                                photo_error if prepared is not None else None)
+    if carved is None:
+        if id(mesh) in renders:
+            start["input_rerendering"] = renders[id(mesh)]
+        return mesh, report
+    start["input_casts"] = cast_carved
+    if id(carved) in renders:
+        start["input_rerendering"] = renders[id(carved)]
+    return carved, report
+
+
 def worse_measures(iou_in: np.ndarray, iou_out: np.ndarray, weights: np.ndarray, roughness: tuple[float, float],
                    folds: int, rerender_errors: tuple[float, float] | None, tol: float,
                    masks_better_tolerance: float = RefineConfig.masks_better_rerender_tolerance) -> list[str]:
@@ -1009,6 +1051,11 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
             f"{100 * view_coverage[v]:.0f}% of its mask)" for v in low)
             + ": their masks disagree with the other views", stacklevel=2)
 
+    start: dict = {}  # what every round starts from (filled by the first; the input carve's casts and renders)
+    input_report: dict = {}
+    if config.input_carve:
+        mesh, input_report = carve_input(mesh, hull, masks, cameras, weights, config, capture, start)
+
     # A penalty method on the views: a view the kept mesh still misses (IoU below the target) pulls
     # harder in the next round, rerun from the input; the round whose kept mesh matches its worst
     # view best is returned (a refined one first, below). Views whose masks disagree with the others
@@ -1019,7 +1066,6 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     # a round must not undo that for less (20-view test scene 30: the input's worst view 0.9787
     # against a refined one's 0.9775, CDN-mean 8.2 against 4.2 degrees; session 66).
     rounds, best, best_rank, best_index, best_worst = [], None, (False, -1.0), 0, -1.0
-    start: dict = {}  # what every round starts from (filled by the first)
     trusted = weights >= 1
     factor, backed_off, milder = config.silhouette_retry_factor, False, False  # milder: this round is the back-off
     best_boost, best_short = boost, np.zeros(V, bool)  # the best round's factors and short views
@@ -1058,6 +1104,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
             milder, boost = False, np.where(short, boost * factor, boost)
     if len(rounds) > 1:
         best.report.update(silhouette_rounds=rounds, silhouette_round=best_index, silhouette_rounds_ended=ended)
+    if input_report:
+        best.report["input_carve"] = input_report
     best.report["seconds"] = round(time.perf_counter() - start_time, 2)
     return best
 

@@ -142,13 +142,16 @@ def evaluate_validation_set(root, out, config: PipelineConfig | None = None, nam
             if mesh_is_hull and "n1_median_hull" in record:
                 record.update(n1_median_mesh=record["n1_median_hull"], n2_median_mesh=record["n2_median_hull"])
         # how well each mesh explains the photos (render/compare.py); the refine stage has already
-        # re-rendered its input (the surface) and its result, at the same seed (and, by default, width
-        # and samples)
+        # re-rendered its input (the surface, or the surface cut to the hull: its input carve) and its
+        # result, at the same seed (and, by default, width and samples)
         views = (refine or {}).get("rerender_error_views")
         prepared = photos_at(capture, RERENDER_WIDTH)
         if views is not None and (config.refine.rerender_width, config.refine.rerender_samples) == (
                 RERENDER_WIDTH, RERENDER_SAMPLES):
-            record["surface"]["rerender"] = float(np.mean(views["input"]))
+            input_carved = bool(refine.get("input_carve", {}).get("kept"))
+            record["surface"]["rerender"] = (rerender(load_mesh(out / name / "surface.ply"), capture,
+                                                      prepared=prepared).mean_error if input_carved
+                                             else float(np.mean(views["input"])))
             record["mesh"]["rerender"] = float(np.mean(views["refined" if refine["kept"] == "refined" else "input"]))
         else:
             for kind in ("surface", "mesh") if "surface" in record else ("mesh",):

@@ -120,6 +120,8 @@ class _ShapeEvaluation:
                                          "rounds": len(refined.report.get("silhouette_rounds", [None])),
                                          "round": refined.report.get("silhouette_round", 0),
                                          "seconds": refined.report["seconds"],
+                                         # whether the input was cut to the hull first (its input carve)
+                                         "input_carved": bool(refined.report.get("input_carve", {}).get("kept")),
                                          **({"kept_why": refined.report["kept_why"]}
                                             if "kept_why" in refined.report else {})}
         return record
