@@ -286,8 +286,9 @@ class RefineConfig:
               "11.7 -> 7.7, worst view 0.985 -> 0.969); 5 views, scene 55's carve kept (+2.5%; without it CD 24.0 -> "
               "27.4, worst view 0.948 -> 0.886) and scene 35's refined mesh kept (+1.4%; worst view 0.939 -> 0.987, "
               "CD 15.31 -> 13.82).", range=(0, None))
-    carve_outside_share: float = setting(0.005, "Share of a view's mask pixels the refined silhouette must cover outside "
-                                                "it before the hull carve is tried.", range=(0, 1))
+    carve_outside_share: float = setting(0.005, "Share of a view's mask pixels the refined silhouette (the input's, for "
+                                                "input_carve) must cover outside it before the hull carve is tried.",
+                                         range=(0, 1))
     keep_tolerance: float = setting(0.002, "The refined mesh is kept unless a measure is worse than the input's by "
                                            "more than this (the worst view's IoU; the mean IoU, only where the "
                                            "refined mesh re-renders the photos better by more than 1%, else "

@@ -365,6 +365,19 @@ def test_a_good_input_is_not_made_worse(scene):
         assert shape_metrics(result.mesh, gt)["cd"] < 2.5  # the sampling floor of the metric is ~2
 
 
+def five_view_scene(gt: trimesh.Trimesh):
+    """`gt` seen by a 5-view paper rig at 320x240: the cameras, the masks and their visual hull. 80
+    voxels: a carved mesh lies inside the hull, so no view's IoU beats the hull's own, and 80 put the
+    slotted bar's worst view at 0.989 (64 voxels: 0.9875, leaving the carve's worst view at 0.9799
+    or 0.982 by machine)."""
+    cameras = paper_rig(5, rng=3, width=320, height=240)
+    masks = object_masks(gt, cameras, samples_per_axis=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        hull = carve_visual_hull(masks, cameras, HullConfig(resolution=80, num_threads=1))
+    return cameras, masks, hull
+
+
 def test_slots_the_surface_filled_are_carved_back_by_the_hull():
     """A bar with three slots 0.1 wide (a key's teeth), 5 views: started from the bar with the slots
     filled (what the surface stage gives a key), the silhouette pull cannot open them (it pulls each
@@ -380,14 +393,9 @@ def test_slots_the_surface_filled_are_carved_back_by_the_hull():
     gt.apply_transform(tilt)
     filled = bar.subdivide_to_size(0.05)
     filled.apply_transform(tilt)
-    cameras = paper_rig(5, rng=3, width=320, height=240)
-    masks = object_masks(gt, cameras, samples_per_axis=2)
+    cameras, masks, hull = five_view_scene(gt)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        # the carved mesh lies inside the hull, so no view's IoU beats the hull's own: 80 voxels put its
-        # worst view at 0.989 (64 voxels: 0.9875, leaving the carve's worst view at 0.9799 or 0.982
-        # by machine, on the bar)
-        hull = carve_visual_hull(masks, cameras, HullConfig(resolution=80, num_threads=1))
         plain = refine_surface(filled, hull, masks, cameras, dataclasses.replace(CONFIG, hull_carve=False,
                                                                                  input_carve=False))
     assert plain.report["kept"] == "refined" and "hull_carve" not in plain.report and "input_carve" not in plain.report
@@ -450,11 +458,9 @@ def test_a_web_across_a_hole_is_cut_before_refining():
     webbed = gt.union(web, engine="manifold")
     gt.apply_transform(tilt)
     webbed.apply_transform(tilt)
-    cameras = paper_rig(5, rng=3, width=320, height=240)
-    masks = object_masks(gt, cameras, samples_per_axis=2)
+    cameras, masks, hull = five_view_scene(gt)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        hull = carve_visual_hull(masks, cameras, HullConfig(resolution=80, num_threads=1))
         after_only = refine_surface(webbed, hull, masks, cameras, dataclasses.replace(CONFIG, input_carve=False))
         cut_first = refine_surface(webbed, hull, masks, cameras, CONFIG)
     assert CONFIG.input_carve and "input_carve" not in after_only.report
