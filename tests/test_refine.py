@@ -252,7 +252,9 @@ def stand_in_rounds(monkeypatch, worst, kept, config):
 
     monkeypatch.setattr(refine, "_refine_once", one_round)
     monkeypatch.setattr(refine, "cast_iou", lambda casts, masks: np.array([worst[casts], 0.99, 0.99, 0.99]))
-    result = refine_surface(None, SimpleNamespace(view_coverage=np.ones(V)), np.zeros((V, 2, 2), bool), None, config)
+    # no input to cut: the stand-in rounds take none
+    result = refine_surface(None, SimpleNamespace(view_coverage=np.ones(V)), np.zeros((V, 2, 2), bool), None,
+                            dataclasses.replace(config, input_carve=False))
     return result, calls
 
 
