@@ -1035,7 +1035,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     (called once a round, on the mesh after the silhouette iterations: the second pass; it returns None
     for a net without a gain head), or a `NormalStageResult` made elsewhere; the term is skipped
     without, or when the net has no gain head. Returns the kept mesh (the better of the refined one
-    and the input) and the report, of the round (`silhouette_retries`) whose kept mesh matches its
+    and the input; the input is `mesh` cut to the hull where `input_carve` keeps that, and the report's
+    input measures are then the cut mesh's) and the report, of the round (`silhouette_retries`) whose kept mesh matches its
     worst view best, of those that keep their refined mesh if any do. Warns (warnings.warn) for every
     down-weighted view, named by `view_names` (V,) when given (its mask file)."""
     config = config or RefineConfig()
