@@ -110,6 +110,7 @@ from .render.raycast import RayCaster, object_masks
 
 
 REFERENCE_EDGE = 0.015  # the edge length the Laplacian weights are given for
+REACH_MARGIN_PX = 1.0  # how much farther the mask must reach than the nearest boundary for a rim to be pushed out
 # The refined mesh may re-render worse than its input by this share before the input is kept:
 # the same mesh re-rendered with other sampling seeds scores within ~0.2% at 2 x 2 samples a pixel, ~0.6%
 # at the default one (duck and nut, val480).
@@ -135,6 +136,11 @@ class RefineConfig:
                               range=(0, 500))
     max_step_px: float = setting(2.0, "Most a constraint moves its vertex in one iteration, in pixels.",
                                  range=(0.01, None))
+    outward_reach: bool = setting(True, "A rim vertex inside its mask whose mask reaches on beyond it, along its "
+                                        "silhouette's outward direction, more than a pixel farther than the field's "
+                                        "nearest boundary (which then lies behind it, across a thin part) is pushed "
+                                        "outward to where the mask ends (up to band_px), not pulled to that nearest "
+                                        "boundary (`outward_reach`).")
     band_px: float = setting(24.0, "Rim vertices farther than this from their mask's boundary are not pulled to it "
                              "(12 until session 52: a crescent 12-20 px deep stayed uncovered).",
                              range=(0, None))
@@ -414,13 +420,58 @@ def contour_vertices(vertices: np.ndarray, faces: np.ndarray, origins: np.ndarra
     return (front > 0) & (front < valence[None])
 
 
+def silhouette_sides(vertices: np.ndarray, faces: np.ndarray, origins: np.ndarray, v_idx: np.ndarray,
+                     n_idx: np.ndarray) -> np.ndarray:
+    """(K, 3) unit vectors: vertex n_idx[k]'s normal less its part along view v_idx[k]'s ray through it,
+    the direction in which the vertex moves its silhouette outward in that view."""
+    n = vertex_normals_t(torch.as_tensor(vertices), torch.as_tensor(faces)).numpy()[n_idx]
+    d = vertices[n_idx] - origins[v_idx]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    side = n - (n * d).sum(axis=1, keepdims=True) * d
+    return side / np.maximum(np.linalg.norm(side, axis=1, keepdims=True), 1e-12)
+
+
+def outward_reach(vertices: np.ndarray, faces: np.ndarray, cams: Cameras, fields: torch.Tensor,
+                  candidates: np.ndarray, reach_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How far each candidate (V, N) vertex's mask reaches beyond it along its silhouette's outward
+    direction (`silhouette_sides`): the first zero of the view's field on that image line, marched in
+    1 px steps up to reach_px (reach_px where the mask goes on). Returns, per candidate in
+    np.nonzero order, that reach (pixels), the direction (world unit vectors) and pixels per world
+    unit along it. Where the field's nearest boundary lies behind a rim (across a thin part), its
+    value says the rim is on its mask's boundary while the mask reaches on beyond it."""
+    v_idx, n_idx = np.nonzero(candidates)
+    side = silhouette_sides(vertices, faces, cams.origin.double().numpy(), v_idx, n_idx)
+    h = 1e-3  # a finite difference: the projection's pixels per unit along `side`
+    p = torch.as_tensor(vertices[n_idx], dtype=torch.float32)
+    q = p + h * torch.as_tensor(side, dtype=torch.float32)
+    steps = torch.arange(0, int(np.ceil(reach_px)) + 1, dtype=torch.float32)
+    reach = np.full(len(v_idx), float(reach_px))
+    px_per_unit = np.zeros(len(v_idx))
+    for v in np.unique(v_idx):  # per view: each has its own field
+        k = np.nonzero(v_idx == v)[0]
+        xy_p, _ = cams.select(int(v)).project(p[k])
+        xy_q, _ = cams.select(int(v)).project(q[k])
+        delta = (xy_q - xy_p)[0]
+        length = delta.norm(dim=-1)
+        px_per_unit[k] = (length / h).numpy()
+        line = xy_p[0][:, None, :] + steps[None, :, None] * (delta / length.clamp_min(1e-12)[:, None])[:, None, :]
+        s = sample_silhouette_fields(fields[int(v):int(v) + 1], line.reshape(1, -1, 2)).reshape(len(k), -1).numpy()
+        out = s <= 0
+        first = np.argmax(out, axis=1)  # the first sample at or beyond the boundary (0: none)
+        crossed = out.any(axis=1) & (first > 0)
+        i = np.nonzero(crossed)[0]
+        before, after = s[i, first[i] - 1], s[i, first[i]]
+        reach[k[i]] = first[i] - 1 + before / np.maximum(before - after, 1e-6)
+        reach[k[out[:, 0]]] = 0.0
+    return reach, side, px_per_unit
+
+
 def rim_vertices(vertices: np.ndarray, faces: np.ndarray, cams: Cameras, candidates: np.ndarray,
                  offset_px: float = 1.0) -> np.ndarray:
     """(V, N) bool: the candidates (V, N) that lie on the outer boundary of the mesh's silhouette in
     their view: the ray through the point one pixel outside the vertex (along its normal, in the
     plane perpendicular to the ray) misses the mesh. Inner folds and occluded contour vertices fail."""
     caster = RayCaster.of(vertices, faces)
-    normals = vertex_normals_t(torch.as_tensor(vertices), torch.as_tensor(faces)).numpy()
     origins = cams.origin.double().numpy()
     pitch = 2 * cams.tan_half_fov_x.double().numpy() / cams.width  # pixel size per unit depth
     forward = cams.forward.double().numpy()
@@ -428,12 +479,9 @@ def rim_vertices(vertices: np.ndarray, faces: np.ndarray, cams: Cameras, candida
     rim = np.zeros_like(candidates)
     if len(v_idx) == 0:
         return rim
-    o, p, n = origins[v_idx], vertices[n_idx], normals[n_idx]
-    d = p - o
-    depth = (d * forward[v_idx]).sum(axis=1)
-    d_unit = d / np.linalg.norm(d, axis=1, keepdims=True)
-    side = n - (n * d_unit).sum(axis=1, keepdims=True) * d_unit
-    side /= np.maximum(np.linalg.norm(side, axis=1, keepdims=True), 1e-12)
+    o, p = origins[v_idx], vertices[n_idx]
+    depth = ((p - o) * forward[v_idx]).sum(axis=1)
+    side = silhouette_sides(vertices, faces, origins, v_idx, n_idx)
     target = p + side * (offset_px * pitch[v_idx] * depth)[:, None]
     miss = ~caster.hit_mask(o, target - o)
     rim[v_idx[miss], n_idx[miss]] = True
@@ -698,7 +746,8 @@ def silhouette_thick_share(config: RefineConfig, num_views: int, mask_width: int
 
 
 def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.ndarray, cams: Cameras,
-                 weights: np.ndarray, config: RefineConfig, weight: float, vertex_shares: np.ndarray) -> _Constraints:
+                 weights: np.ndarray, config: RefineConfig, weight: float, vertex_shares: np.ndarray,
+                 fields: torch.Tensor | None = None) -> _Constraints:
     """The silhouette constraints at `vertices` (normalized frame) from the fields' values s (V, N)
     and gradients g (V, N, 3); weight: the terms' weight (`silhouette_weight`), each vertex's share of
     it `vertex_shares` (N,) (`silhouette_vertex_shares`)."""
@@ -712,6 +761,16 @@ def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.n
     step_px = np.clip(target_px - s, -config.max_step_px, config.max_step_px)
     unit = g / np.maximum(gnorm, 1e-12)[..., None]
     r = np.where(active, step_px / np.maximum(gnorm, 1e-12), 0.0)  # world units along `unit`
+    if config.outward_reach and fields is not None:
+        # a rim inside its mask whose mask reaches on outward farther than its nearest boundary: that
+        # boundary lies behind it (a thin part, a handle narrower than its mask), and the pull to it
+        # would hold the rim there or drag it across the part; it is pushed outward instead
+        inside = rim & (s > 0)
+        reach, side, px_per_unit = outward_reach(vertices, faces, cams, fields, inside, config.band_px)
+        behind = (reach > s[inside] + REACH_MARGIN_PX) & (px_per_unit > 0)
+        v_idx, n_idx = (i[behind] for i in np.nonzero(inside))
+        unit[v_idx, n_idx] = side[behind]
+        r[v_idx, n_idx] = np.minimum(reach[behind], config.max_step_px) / px_per_unit[behind]
     w = np.where(active, weight * weights[:, None] * vertex_shares[None, :], 0.0)
     M = np.einsum("vn,vni,vnj->nij", w, unit, unit)
     b = np.einsum("vn,vn,vni->ni", w, r, unit)
@@ -1179,7 +1238,7 @@ def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cam
     # the normal term undoes most of it: ellipsoid CDN-mean 1.8 -> 4.2 degrees, session 42)
     for _ in range(config.iterations):
         s, g = field_values(fields, cams, x)
-        cons = _constraints(x, faces, s, g, cams, pull, config, w_sil, sil_share)
+        cons = _constraints(x, faces, s, g, cams, pull, config, w_sil, sil_share, fields)
         history.append({"rim": int(cons.rim.sum()), "outside": int(cons.outside.sum())})
         rhs = cons.b - lap_t @ (w_smooth * (lap @ (x - x0)) + (w_fair * fair_share)[:, None] * fair_residual(x)) \
             - config.anchor_weight * (x - x0)
@@ -1191,7 +1250,7 @@ def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cam
         after the last."""
         nonlocal x
         s, g = field_values(fields, cams, x)
-        solve = solver.operator(_constraints(x, faces, s, g, cams, pull, config, w_sil, sil_share).M,
+        solve = solver.operator(_constraints(x, faces, s, g, cams, pull, config, w_sil, sil_share, fields).M,
                                 config.descent_cg_iterations)
         x, losses = _descend(x, x0, faces, target, solve, step * config.edge_length, iterations, growth)
         return losses
