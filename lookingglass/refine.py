@@ -20,7 +20,11 @@ surface (capture frame, closed) and, in the hull-normalized frame (max |p| = 1):
      the plane constraint g.(x - x_k) = -s with g = grad_x s_v(project_v(x)), which lies in the
      plane perpendicular to the viewing ray: a vertex moves across the line of sight only. A rim
      vertex inside the mask pushes the silhouette out (mask pixels left uncovered), one outside
-     pulls it in. The step is capped (max_step_px) and re-linearized at the next iteration.
+     pulls it in. The step is capped (max_step_px) and re-linearized at the next iteration. Where
+     the mask reaches on beyond a rim inside it farther than that nearest boundary (which then lies
+     behind the rim, across a part thinner than its mask), the rim is pushed outward, in the plane
+     perpendicular to the ray, to where a march along its outward direction leaves the mask
+     (`outward_reach`).
    - **outside**: every other vertex projecting outside a mask (s_v < 0) is pulled inside it.
    - **smooth**: the uniform Laplacian of the displacement from the start (keeps the surface's
      detail, spreads each constraint's pull smoothly over its neighbourhood), plus an optional

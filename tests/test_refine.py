@@ -486,6 +486,51 @@ def test_a_web_across_a_hole_is_cut_before_refining():
     assert again.report["input_carve"]["outside_share_max"] <= CONFIG.carve_outside_share
 
 
+def ring_with_tube(tube) -> trimesh.Trimesh:
+    """A ring in the xy plane whose hole is a circle of radius 0.45 and whose tube radius is tube(phi)
+    (phi: the angle around the ring): where the tube is thinner, the ring is narrower on the outside."""
+    phi, theta = np.meshgrid(np.linspace(0, 2 * np.pi, 128, endpoint=False),
+                             np.linspace(0, 2 * np.pi, 24, endpoint=False), indexing="ij")
+    r = tube(phi)
+    centre = 0.45 + r
+    vertices = np.stack([(centre + r * np.cos(theta)) * np.cos(phi), (centre + r * np.cos(theta)) * np.sin(phi),
+                         r * np.sin(theta)], axis=-1).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(128), np.arange(24), indexing="ij")
+    a, b = i * 24 + j, (i + 1) % 128 * 24 + j
+    c, d = (i + 1) % 128 * 24 + (j + 1) % 24, i * 24 + (j + 1) % 24
+    mesh = trimesh.Trimesh(vertices, np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
+                                                     np.stack([a, c, d], -1).reshape(-1, 3)]), process=False)
+    mesh.fix_normals()
+    return mesh
+
+
+def test_a_rim_whose_nearest_boundary_lies_behind_it_is_pushed_out():
+    """A ring whose surface is less than half as thick as its masks over a third of its round, on the
+    outside (the 5-view test scene 55's handle): there each outer rim vertex is nearer the hole's
+    boundary behind it than the mask's outer boundary ahead, so the pull to the nearest boundary holds
+    it where it is. Marching along the silhouette's outward direction (`outward_reach`) finds where
+    the mask ends, and the rims are pushed there: every view at the hull's IoU."""
+    tilt = trimesh.transformations.rotation_matrix(0.5, [1, 0.3, 0])
+    gt = ring_with_tube(lambda phi: np.full_like(phi, 0.15)).apply_transform(tilt)
+    # the tube 0.06 thick at phi = 0, whole (0.15) from |phi| = 1 on
+    dip = lambda phi: 0.15 - 0.09 * np.clip(1.2 * np.cos(np.clip(np.abs(np.angle(np.exp(1j * phi))), 0, 1)  # noqa: E731
+                                                       * np.pi / 2), 0, 1)
+    thin = lumpy_shrunken(ring_with_tube(dip), scale=1.0).apply_transform(tilt)
+    cameras, masks, hull = five_view_scene(gt)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        nearest = refine_surface(thin, hull, masks, cameras, dataclasses.replace(CONFIG, outward_reach=False))
+        pushed = refine_surface(thin, hull, masks, cameras, CONFIG)
+    assert CONFIG.outward_reach
+    # measured: the pull to the nearest boundary leaves the worst view at 0.876 (the input's 0.766)
+    assert min(nearest.report["silhouette_iou_after"]) < 0.93, nearest.report["silhouette_iou_after"]
+    assert pushed.report["kept"] == "refined", pushed.report.get("kept_why")
+    iou = silhouette_iou(pushed.mesh, cameras, masks)
+    # measured: worst view 0.992 (the hull's 0.998), CD 1.58 (the input's 34.4; a ring's sampling floor ~1-2)
+    assert iou.min() >= silhouette_iou(hull.mesh, cameras, masks).min() - 0.01, iou
+    assert shape_metrics(pushed.mesh, gt)["cd"] < 3.0
+
+
 def test_an_input_made_worse_is_rejected(scene):
     """The keep check itself: a refinement that cannot help (no iterations, only the remeshing)
     of a mesh already on the masks must not replace it when it does not improve the measures."""
