@@ -598,6 +598,7 @@ class _Constraints:
     b: np.ndarray
     rim: np.ndarray  # (V, N) bool
     outside: np.ndarray  # (V, N) bool
+    pushed: int = 0  # rim constraints pushed out to where their mask ends (`outward_reach`)
 
 
 def _width_scale(config: RefineConfig, mask_width: int) -> float:
@@ -765,6 +766,7 @@ def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.n
     step_px = np.clip(target_px - s, -config.max_step_px, config.max_step_px)
     unit = g / np.maximum(gnorm, 1e-12)[..., None]
     r = np.where(active, step_px / np.maximum(gnorm, 1e-12), 0.0)  # world units along `unit`
+    pushed = 0
     if config.outward_reach and fields is not None:
         # a rim inside its mask whose mask reaches on outward farther than its nearest boundary: that
         # boundary lies behind it (a thin part, a handle narrower than its mask), and the pull to it
@@ -775,10 +777,11 @@ def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.n
         v_idx, n_idx = (i[behind] for i in np.nonzero(inside))
         unit[v_idx, n_idx] = side[behind]
         r[v_idx, n_idx] = np.minimum(reach[behind], config.max_step_px) / px_per_unit[behind]
+        pushed = int(behind.sum())
     w = np.where(active, weight * weights[:, None] * vertex_shares[None, :], 0.0)
     M = np.einsum("vn,vni,vnj->nij", w, unit, unit)
     b = np.einsum("vn,vn,vni->ni", w, r, unit)
-    return _Constraints(M, b, rim, outside)
+    return _Constraints(M, b, rim, outside, pushed)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1243,7 +1246,7 @@ def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cam
     for _ in range(config.iterations):
         s, g = field_values(fields, cams, x)
         cons = _constraints(x, faces, s, g, cams, pull, config, w_sil, sil_share, fields)
-        history.append({"rim": int(cons.rim.sum()), "outside": int(cons.outside.sum())})
+        history.append({"rim": int(cons.rim.sum()), "outside": int(cons.outside.sum()), "pushed": cons.pushed})
         rhs = cons.b - lap_t @ (w_smooth * (lap @ (x - x0)) + (w_fair * fair_share)[:, None] * fair_residual(x)) \
             - config.anchor_weight * (x - x0)
         x = _unfolded(reference, x, x + solver.operator(cons.M)(rhs), faces)

@@ -525,6 +525,8 @@ def test_a_rim_whose_nearest_boundary_lies_behind_it_is_pushed_out():
     # measured: the pull to the nearest boundary leaves the worst view at 0.876 (the input's 0.766)
     assert min(nearest.report["silhouette_iou_after"]) < 0.93, nearest.report["silhouette_iou_after"]
     assert pushed.report["kept"] == "refined", pushed.report.get("kept_why")
+    assert nearest.report["constraints_first_last"][0]["pushed"] == 0
+    assert pushed.report["constraints_first_last"][0]["pushed"] > 0
     iou = silhouette_iou(pushed.mesh, cameras, masks)
     # measured: worst view 0.992 (the hull's 0.998), CD 1.58 (the input's 34.4; a ring's sampling floor ~1-2)
     assert iou.min() >= silhouette_iou(hull.mesh, cameras, masks).min() - 0.01, iou
