@@ -939,7 +939,7 @@ def test_the_thick_parts_share_reaches_the_silhouette_constraints(scene, monkeyp
 
     seen = []
     original = refine._constraints
-    monkeypatch.setattr(refine, "_constraints", lambda *a: seen.append(a[-1]) or original(*a))
+    monkeypatch.setattr(refine, "_constraints", lambda *a: seen.append(a[8]) or original(*a))  # vertex_shares
     # 5 "thick" views below 10: a share of 1 - (1 - 5 / 10) x (1 - coarse_share) at 320 px, on every
     # part (no thickness to spare; the coarse masks' cap off)
     config = dataclasses.replace(CONFIG, iterations=2, silhouette_views_thick=5, fair_thickness=0.0,
