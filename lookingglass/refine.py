@@ -22,9 +22,9 @@ surface (capture frame, closed) and, in the hull-normalized frame (max |p| = 1):
      vertex inside the mask pushes the silhouette out (mask pixels left uncovered), one outside
      pulls it in. The step is capped (max_step_px) and re-linearized at the next iteration. Where
      the mask reaches on beyond a rim inside it farther than that nearest boundary (which then lies
-     behind the rim, across a part thinner than its mask), the rim is pushed outward, in the plane
-     perpendicular to the ray, to where a march along its outward direction leaves the mask
-     (`outward_reach`).
+     behind the rim, across a part thinner than its mask, or beside it, at a corner), the rim is
+     pushed outward, in the plane perpendicular to the ray, to where a march along its outward
+     direction leaves the mask (`outward_reach`).
    - **outside**: every other vertex projecting outside a mask (s_v < 0) is pulled inside it.
    - **smooth**: the uniform Laplacian of the displacement from the start (keeps the surface's
      detail, spreads each constraint's pull smoothly over its neighbourhood), plus an optional
@@ -142,7 +142,7 @@ class RefineConfig:
                                  range=(0.01, None))
     outward_reach: bool = setting(True, "A rim vertex inside its mask whose mask reaches on beyond it, along its "
                                         "silhouette's outward direction, more than a pixel farther than the field's "
-                                        "nearest boundary (which then lies behind it, across a thin part) is pushed "
+                                        "nearest boundary (which then lies behind it, across a thin part, or beside it) is pushed "
                                         "outward to where the mask ends (up to band_px), not pulled to that nearest "
                                         "boundary (`outward_reach`).")
     band_px: float = setting(24.0, "Rim vertices farther than this from their mask's boundary are not pulled to it "
@@ -769,8 +769,9 @@ def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.n
     pushed = 0
     if config.outward_reach and fields is not None:
         # a rim inside its mask whose mask reaches on outward farther than its nearest boundary: that
-        # boundary lies behind it (a thin part, a handle narrower than its mask), and the pull to it
-        # would hold the rim there or drag it across the part; it is pushed outward instead
+        # boundary lies behind it (a thin part, a handle narrower than its mask) or beside it (a corner),
+        # and the pull to it would hold the rim there, drag it across the part or slide it along its
+        # silhouette; it is pushed outward instead
         inside = rim & (s > 0)
         reach, side, px_per_unit = outward_reach(vertices, faces, cams, fields, inside, config.band_px)
         behind = (reach > s[inside] + REACH_MARGIN_PX) & (px_per_unit > 0)
