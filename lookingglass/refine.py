@@ -142,9 +142,10 @@ class RefineConfig:
                                  range=(0.01, None))
     outward_reach: bool = setting(True, "A rim vertex inside its mask whose mask reaches on beyond it, along its "
                                         "silhouette's outward direction, more than a pixel farther than the field's "
-                                        "nearest boundary (which then lies behind it, across a thin part, or beside it) is pushed "
-                                        "outward to where the mask ends (up to band_px), not pulled to that nearest "
-                                        "boundary (`outward_reach`).")
+                                        "nearest boundary (which then lies behind it, across a thin part, or beside "
+                                        "it) is pushed outward to where the mask ends (up to band_px), not pulled to "
+                                        "that nearest boundary (`outward_reach`). The 5-view test scene 55's handle: "
+                                        "worst view 0.964 -> 0.991 (docs/history.md, session 75).")
     band_px: float = setting(24.0, "Rim vertices farther than this from their mask's boundary are not pulled to it "
                              "(12 until session 52: a crescent 12-20 px deep stayed uncovered).",
                              range=(0, None))
@@ -441,8 +442,9 @@ def outward_reach(vertices: np.ndarray, faces: np.ndarray, cams: Cameras, fields
     direction (`silhouette_sides`): the first zero of the view's field on that image line, marched in
     1 px steps up to reach_px (reach_px where the mask goes on). Returns, per candidate in
     np.nonzero order, that reach (pixels), the direction (world unit vectors) and pixels per world
-    unit along it. Where the field's nearest boundary lies behind a rim (across a thin part), its
-    value says the rim is on its mask's boundary while the mask reaches on beyond it."""
+    unit along it. Where the field's nearest boundary lies behind a rim (across a thin part) or
+    beside it, its value says the rim is at or near its mask's boundary while the mask reaches on
+    beyond it."""
     v_idx, n_idx = np.nonzero(candidates)
     side = silhouette_sides(vertices, faces, cams.origin.double().numpy(), v_idx, n_idx)
     h = 1e-3  # a finite difference: the projection's pixels per unit along `side`
