@@ -213,6 +213,12 @@ class RefineConfig:
                                                     "every view reaches silhouette_iou_target: a 3 x pull can overshoot "
                                                     "where a milder one lands (val480's key: 0.9795, then 0.9774 at 3 x, "
                                                     "0.9830 at the square root; docs/history.md, session 69).")
+    silhouette_round_without_normals: bool = setting(
+        True, "When the rounds end with a view short of silhouette_iou_target and the normal term of a round took a "
+              "view that round pulled harder below the target (or lower still below it, by more than keep_tolerance), "
+              "one more round at that round's pull without the normal term, returned where it matches its worst "
+              "view better (report.json: silhouette_rounds; normal_term.pulled_views_lost). val480's key: worst view "
+              "0.9786 -> 0.9846 (docs/history.md, session 76).")
     silhouette_iou_target: float = setting(0.98, "The silhouette IoU below which a view pulls harder in the next "
                                                  "round (silhouette_retries; issue 25's bar).", range=(0, 1))
     field_blur_px: float = setting(0.0, "Gaussian blur (sigma, pixels) of the masks' signed-distance fields the "
@@ -426,18 +432,24 @@ def contour_vertices(vertices: np.ndarray, faces: np.ndarray, origins: np.ndarra
     return (front > 0) & (front < valence[None])
 
 
-def silhouette_sides(vertices: np.ndarray, faces: np.ndarray, origins: np.ndarray, v_idx: np.ndarray,
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(N, 3) unit vertex normals (`vertex_normals_t`, the renderer's)."""
+    return vertex_normals_t(torch.as_tensor(vertices), torch.as_tensor(faces)).numpy()
+
+
+def silhouette_sides(vertices: np.ndarray, normals: np.ndarray, origins: np.ndarray, v_idx: np.ndarray,
                      n_idx: np.ndarray) -> np.ndarray:
-    """(K, 3) unit vectors: vertex n_idx[k]'s normal less its part along view v_idx[k]'s ray through it,
-    the direction in which the vertex moves its silhouette outward in that view."""
-    n = vertex_normals_t(torch.as_tensor(vertices), torch.as_tensor(faces)).numpy()[n_idx]
+    """(K, 3) unit vectors: vertex n_idx[k]'s normal (`normals` (N, 3), `vertex_normals`) less its part
+    along view v_idx[k]'s ray through it, the direction in which the vertex moves its silhouette
+    outward in that view."""
+    n = normals[n_idx]
     d = vertices[n_idx] - origins[v_idx]
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     side = n - (n * d).sum(axis=1, keepdims=True) * d
     return side / np.maximum(np.linalg.norm(side, axis=1, keepdims=True), 1e-12)
 
 
-def outward_reach(vertices: np.ndarray, faces: np.ndarray, cams: Cameras, fields: torch.Tensor,
+def outward_reach(vertices: np.ndarray, normals: np.ndarray, cams: Cameras, fields: torch.Tensor,
                   candidates: np.ndarray, reach_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """How far each candidate (V, N) vertex's mask reaches beyond it along its silhouette's outward
     direction (`silhouette_sides`): the first zero of the view's field on that image line, marched in
@@ -446,7 +458,7 @@ def outward_reach(vertices: np.ndarray, faces: np.ndarray, cams: Cameras, fields
     unit along it. Where the field's nearest boundary lies behind a rim (across a thin part), its
     value says the rim is at or near its mask's boundary while the mask reaches on beyond it."""
     v_idx, n_idx = np.nonzero(candidates)
-    side = silhouette_sides(vertices, faces, cams.origin.double().numpy(), v_idx, n_idx)
+    side = silhouette_sides(vertices, normals, cams.origin.double().numpy(), v_idx, n_idx)
     h = 1e-3  # a finite difference: the projection's pixels per unit along `side`
     p = torch.as_tensor(vertices[n_idx], dtype=torch.float32)
     q = p + h * torch.as_tensor(side, dtype=torch.float32)
@@ -473,7 +485,7 @@ def outward_reach(vertices: np.ndarray, faces: np.ndarray, cams: Cameras, fields
 
 
 def rim_vertices(vertices: np.ndarray, faces: np.ndarray, cams: Cameras, candidates: np.ndarray,
-                 offset_px: float = 1.0) -> np.ndarray:
+                 offset_px: float = 1.0, normals: np.ndarray | None = None) -> np.ndarray:
     """(V, N) bool: the candidates (V, N) that lie on the outer boundary of the mesh's silhouette in
     their view: the ray through the point one pixel outside the vertex (along its normal, in the
     plane perpendicular to the ray) misses the mesh. Inner folds and occluded contour vertices fail."""
@@ -487,7 +499,8 @@ def rim_vertices(vertices: np.ndarray, faces: np.ndarray, cams: Cameras, candida
         return rim
     o, p = origins[v_idx], vertices[n_idx]
     depth = ((p - o) * forward[v_idx]).sum(axis=1)
-    side = silhouette_sides(vertices, faces, origins, v_idx, n_idx)
+    normals = vertex_normals(vertices, faces) if normals is None else normals
+    side = silhouette_sides(vertices, normals, origins, v_idx, n_idx)
     target = p + side * (offset_px * pitch[v_idx] * depth)[:, None]
     miss = ~caster.hit_mask(o, target - o)
     rim[v_idx[miss], n_idx[miss]] = True
@@ -495,11 +508,11 @@ def rim_vertices(vertices: np.ndarray, faces: np.ndarray, cams: Cameras, candida
 
 
 def _rim(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, cams: Cameras, usable: np.ndarray,
-         config: RefineConfig) -> np.ndarray:
+         config: RefineConfig, normals: np.ndarray | None = None) -> np.ndarray:
     """(V, N) bool: the rim vertices the silhouette term pulls: usable (V, N) contour-generator
     vertices within `band_px` of their mask's boundary and on their silhouette's outer boundary."""
     contour = contour_vertices(vertices, faces, cams.origin.double().numpy())
-    return rim_vertices(vertices, faces, cams, contour & (np.abs(s) < config.band_px) & usable)
+    return rim_vertices(vertices, faces, cams, contour & (np.abs(s) < config.band_px) & usable, normals=normals)
 
 
 def cast_iou(casts: np.ndarray, masks: np.ndarray) -> np.ndarray:
@@ -760,7 +773,8 @@ def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.n
     it `vertex_shares` (N,) (`silhouette_vertex_shares`)."""
     gnorm = np.linalg.norm(g, axis=-1)
     usable = (gnorm > 1e-6) & (weights[:, None] > 0)
-    rim = _rim(vertices, faces, s, cams, usable, config)
+    normals = vertex_normals(vertices, faces)  # one computation for the rim test and the reach
+    rim = _rim(vertices, faces, s, cams, usable, config, normals)
     outside = (s < 0) & ~rim & usable
     active = rim | outside
     # residual in pixels: rim -> s = 0, outside -> s = +0.25 (a quarter pixel inside)
@@ -777,7 +791,7 @@ def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.n
         # the vertex normal there too, 16 of the 5-view test split's first 18 scenes changed, CD +0.9%,
         # Metro +1.1% (scene 12 12.5 -> 17.7), the val480 stepped shaft's Metro 11.9 -> 15.8 (session 75)
         inside = rim & (s > 0)
-        reach, side, px_per_unit = outward_reach(vertices, faces, cams, fields, inside, config.band_px)
+        reach, side, px_per_unit = outward_reach(vertices, normals, cams, fields, inside, config.band_px)
         deepens = (unit[inside] * side).sum(axis=1) > 0
         behind = deepens & (reach > s[inside] + REACH_MARGIN_PX) & (px_per_unit > 0)
         v_idx, n_idx = (i[behind] for i in np.nonzero(inside))
@@ -1058,6 +1072,15 @@ def carve_input(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, came
     return carved, report
 
 
+def silhouette_lost(iou_before: np.ndarray, iou_after: np.ndarray, trusted: np.ndarray,
+                    config: RefineConfig) -> np.ndarray:
+    """The trusted views (indices) that a change takes below silhouette_iou_target from at or above it,
+    or lowers by more than keep_tolerance where they were already below it."""
+    below = iou_after < config.silhouette_iou_target
+    fell = (iou_before >= config.silhouette_iou_target) | (iou_after < iou_before - config.keep_tolerance)
+    return np.flatnonzero(trusted & below & fell)
+
+
 def worse_measures(iou_in: np.ndarray, iou_out: np.ndarray, weights: np.ndarray, roughness: tuple[float, float],
                    folds: int, rerender_errors: tuple[float, float] | None, tol: float,
                    masks_better_tolerance: float = RefineConfig.masks_better_rerender_tolerance) -> list[str]:
@@ -1143,13 +1166,24 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     trusted = weights >= 1
     factor, backed_off, milder = config.silhouette_retry_factor, False, False  # milder: this round is the back-off
     best_boost, best_short = boost, np.zeros(V, bool)  # the best round's factors and short views
-    for index in range(config.silhouette_retries + 2):  # the last one only as a back-off (below)
-        result = _refine_once(mesh, hull, masks, cameras, config, weights, boost, capture, normals, start)
+    lowered = []  # (worst view before the term, round, boost) of rounds whose normal term lowered a pulled view
+
+    def record(result: RefineResult, boost: np.ndarray, **extra) -> tuple[np.ndarray, float]:
+        """The round's silhouette IoUs and worst trusted view, entered in `rounds`."""
         iou = cast_iou(result.casts, masks)
         worst = float(iou[trusted].min()) if trusted.any() else 1.0
         rounds.append({"boost": [round(float(b), 3) for b in boost], "kept": result.report["kept"],
                        "carved": bool(result.report.get("hull_carve", {}).get("kept", False)),  # the refined mesh
-                       "worst_iou": round(worst, 4), "seconds": result.report["seconds"]})
+                       "worst_iou": round(worst, 4), "seconds": result.report["seconds"], **extra})
+        term = result.report.get("normal_term", {})
+        if "pulled_views_lost" in term:  # the views its normal term took below the target
+            rounds[-1]["normal_term_lowered"] = term["pulled_views_lost"]
+            lowered.append((term["worst_iou_without"], len(rounds) - 1, boost))
+        return iou, worst
+
+    for index in range(config.silhouette_retries + 2):  # the last one only as a back-off (below)
+        result = _refine_once(mesh, hull, masks, cameras, config, weights, boost, capture, normals, start)
+        iou, worst = record(result, boost)
         stalled = index > 0 and worst <= best_worst + config.silhouette_round_gain
         short = trusted & (iou < config.silhouette_iou_target)
         rank = (result.report["kept"] == "refined", worst)
@@ -1176,6 +1210,16 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
             boost = np.where(best_short, best_boost * factor, best_boost)
         else:
             milder, boost = False, np.where(short, boost * factor, boost)
+    if config.silhouette_round_without_normals and lowered and best_rank[1] < config.silhouette_iou_target:
+        # the rounds end short, and a round's normal term undid what its harder pull bought: that
+        # round once more without the term (its silhouette iterations are the same)
+        without_worst, index, boost = max(lowered, key=lambda item: item[0])
+        if without_worst > best_rank[1]:
+            result = _refine_once(mesh, hull, masks, cameras, dataclasses.replace(config, normal_iterations=0),
+                                  weights, boost, capture, normals, start)
+            _, worst = record(result, boost, normal_term=f"off (round {index}'s pull)")
+            if (result.report["kept"] == "refined", worst) > best_rank:
+                best, best_index = result, len(rounds) - 1
     if len(rounds) > 1:
         best.report.update(silhouette_rounds=rounds, silhouette_round=best_index, silhouette_rounds_ended=ended)
     if input_report:
@@ -1273,6 +1317,7 @@ def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cam
                     if capture is not None and config.rerender_width > 0 else None)
     rerendered: dict = {}
     normal_report: dict = {}
+    casts: list = []  # (vertices, their silhouettes) the normal term cast, before and after it
     if config.normal_iterations and normals is not None:
         t_normals = time.perf_counter()
         current = lambda: trimesh.Trimesh(hull.denormalize_points(x), faces, process=False)  # noqa: E731
@@ -1291,18 +1336,29 @@ def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cam
                 normal_report.update(loss=[round(v, 4) for v in descend(target, config.normal_step,
                                                                            config.normal_iterations,
                                                                            config.normal_step_growth)], kept=True)
-            if share > 0 and prepared is not None:
+            mesh_without = trimesh.Trimesh(hull.denormalize_points(before_term), faces, process=False)
+            if share > 0 and prepared is not None and normal_report.get("kept"):
                 # the gain head is a weak signal on some shapes (the key, session 42): the term's
                 # result stays only where it explains the photos no worse than the mesh before it
                 with_term = rerender(current(), capture, prepared=prepared, samples_per_axis=config.rerender_samples)
-                without = rerender(trimesh.Trimesh(hull.denormalize_points(before_term), faces, process=False),
-                                   capture, prepared=prepared, samples_per_axis=config.rerender_samples)
+                without = rerender(mesh_without, capture, prepared=prepared, samples_per_axis=config.rerender_samples)
                 e_without, e_with = mean_w(without.error), mean_w(with_term.error)
                 normal_report["rerender_error"] = [round(e_without, 4), round(e_with, 4)]
                 kept = e_with <= e_without * (1 + RERENDER_TOLERANCE)
                 normal_report["kept"] = kept
                 x = x if kept else before_term
                 rerendered["refined"] = with_term if kept else without
+            pulled = (weights >= 1) & (boost > 1)  # the views this round pulls harder (silhouette_retries)
+            if normal_report.get("kept") and config.silhouette_round_without_normals and pulled.any():
+                # the term descends the normals alone, and its steps may undo what the harder pull bought
+                # (val480's key: view 2 at 0.9846 after the pull, 0.9770 after the term; session 76):
+                # `refine_surface` may run this round again without it
+                casts += [(before_term, object_masks(mesh_without, cameras)), (x, object_masks(current(), cameras))]
+                iou_without, iou_with = (cast_iou(c, masks) for _, c in casts)
+                lost = silhouette_lost(iou_without, iou_with, pulled, config)
+                if len(lost):
+                    normal_report.update(pulled_views_lost=[int(v) for v in lost],
+                                         worst_iou_without=round(float(iou_without[weights >= 1].min()), 4))
         timings["normals"] = time.perf_counter() - t_normals
     photo_losses: list[float] = []
     if config.photometric_iterations and capture is not None:
@@ -1327,7 +1383,9 @@ def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cam
             renders.append((m, found))
         return found
 
-    cast_in, cast_out = once("input_casts", lambda: object_masks(mesh, cameras)), object_masks(refined, cameras)
+    cast_in = once("input_casts", lambda: object_masks(mesh, cameras))
+    cast_out = next((c for seen, c in casts if seen is x), None)
+    cast_out = object_masks(refined, cameras) if cast_out is None else cast_out
     iou_in, iou_out = cast_iou(cast_in, masks), cast_iou(cast_out, masks)
     carve_report: dict = {}
     if config.hull_carve:
