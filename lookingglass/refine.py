@@ -1072,13 +1072,14 @@ def carve_input(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, came
     return carved, report
 
 
-def silhouette_lost(iou_before: np.ndarray, iou_after: np.ndarray, trusted: np.ndarray,
+def silhouette_lost(iou_before: np.ndarray, iou_after: np.ndarray, views: np.ndarray,
                     config: RefineConfig) -> np.ndarray:
-    """The trusted views (indices) that a change takes below silhouette_iou_target from at or above it,
-    or lowers by more than keep_tolerance where they were already below it."""
+    """Of `views` (V,) bool (the views a round pulls harder), the indices that a change takes below
+    silhouette_iou_target from at or above it, or lowers by more than keep_tolerance where they were
+    already below it."""
     below = iou_after < config.silhouette_iou_target
     fell = (iou_before >= config.silhouette_iou_target) | (iou_after < iou_before - config.keep_tolerance)
-    return np.flatnonzero(trusted & below & fell)
+    return np.flatnonzero(views & below & fell)
 
 
 def worse_measures(iou_in: np.ndarray, iou_out: np.ndarray, weights: np.ndarray, roughness: tuple[float, float],
