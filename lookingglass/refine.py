@@ -24,8 +24,7 @@ surface (capture frame, closed) and, in the hull-normalized frame (max |p| = 1):
      that nearest boundary lies behind a rim inside the mask (the field deepens outward, and the mask
      reaches on beyond the rim farther than that boundary: a part thinner than its mask), the rim is
      pushed outward, in the plane perpendicular to the ray, to where a march along its outward
-     direction leaves the mask (`outward_reach`; on coarse masks below 10 views only:
-     `outward_reach_applies`).
+     direction leaves the mask (`outward_reach`).
    - **outside**: every other vertex projecting outside a mask (s_v < 0) is pulled inside it.
    - **smooth**: the uniform Laplacian of the displacement from the start (keeps the surface's
      detail, spreads each constraint's pull smoothly over its neighbourhood), plus an optional
@@ -148,14 +147,6 @@ class RefineConfig:
                                         "band_px), not pulled to that nearest boundary (`outward_reach`). The "
                                         "5-view 480x360 test scene 55's handle: worst view 0.964 -> 0.987 "
                                         "(docs/history.md, session 75).")
-    outward_reach_views_coarse: int = setting(10, "On coarse masks (coarse_share 0.5 and above: 360 px wide and "
-                                                  "below at silhouette_width 480) the outward reach applies only "
-                                                  "below this many views (0: at any count). There the other views "
-                                                  "hold a thin part, and the push trades one view's sub-pixel rim "
-                                                  "for another's: without it the 20-view 128x96 scene 17's worst "
-                                                  "view 0.9794 -> 0.9803, val240v20's key 0.9779 -> 0.9805, "
-                                                  "val128's key 0.9655 -> 0.9734 (docs/history.md, session 78).",
-                                              range=(0, None))
     band_px: float = setting(24.0, "Rim vertices farther than this from their mask's boundary are not pulled to it "
                              "(12 until session 52: a crescent 12-20 px deep stayed uncovered).",
                              range=(0, None))
@@ -699,17 +690,6 @@ def fair_curvature_share(config: RefineConfig, mask_width: int) -> float:
     return coarse_share(config, mask_width)
 
 
-def outward_reach_applies(config: RefineConfig, num_views: int, mask_width: int) -> bool:
-    """Whether the silhouette term pushes rims out to where their masks end (`outward_reach`) for
-    num_views masks `mask_width` pixels wide: on full-width masks, and on coarse ones below
-    outward_reach_views_coarse views (where fewer views hold a thin part: the 5-view 128x96 test
-    scenes 55 and 44 need it)."""
-    if not config.outward_reach:
-        return False
-    few_views = config.outward_reach_views_coarse == 0 or num_views < config.outward_reach_views_coarse
-    return few_views or coarse_share(config, mask_width) < 0.5
-
-
 def coarse_share(config: RefineConfig, mask_width: int) -> float:
     """How coarse masks `mask_width` pixels wide are, for the settings that differ on coarse masks (the
     fairing that keeps the curvature, silhouette_views_coarse, silhouette_views_thick_coarse): 1 at half
@@ -790,8 +770,7 @@ def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.n
                  fields: torch.Tensor | None = None) -> _Constraints:
     """The silhouette constraints at `vertices` (normalized frame) from the fields' values s (V, N)
     and gradients g (V, N, 3); weight: the terms' weight (`silhouette_weight`), each vertex's share of
-    it `vertex_shares` (N,) (`silhouette_vertex_shares`); fields: the silhouette fields, for the
-    outward reach (None: no rim is pushed out; `outward_reach_applies`)."""
+    it `vertex_shares` (N,) (`silhouette_vertex_shares`)."""
     gnorm = np.linalg.norm(g, axis=-1)
     usable = (gnorm > 1e-6) & (weights[:, None] > 0)
     normals = vertex_normals(vertices, faces)  # one computation for the rim test and the reach
@@ -804,7 +783,7 @@ def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.n
     unit = g / np.maximum(gnorm, 1e-12)[..., None]
     r = np.where(active, step_px / np.maximum(gnorm, 1e-12), 0.0)  # world units along `unit`
     pushed = 0
-    if fields is not None:
+    if config.outward_reach and fields is not None:
         # a rim inside its mask whose field deepens outward, and whose mask reaches on that way farther
         # than its nearest boundary: that boundary lies behind it (a handle thinner than its mask), and
         # the pull to it would hold the rim there or drag it across the part; it is pushed outward
@@ -1298,7 +1277,6 @@ def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cam
                  if config.fair_thickness > 0 and min(curvature_share, thick_share) < 1 else None)
     fair_share = fair_vertex_shares(config, masks.shape[2], x0, faces, thick)
     sil_share = silhouette_vertex_shares(config, V, masks.shape[2], x0, faces, thick)
-    reach_fields = fields if outward_reach_applies(config, V, masks.shape[2]) else None
     c_diag = config.damping + config.anchor_weight
     x = x0.copy()
     history = []
@@ -1321,7 +1299,7 @@ def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cam
     # the normal term undoes most of it: ellipsoid CDN-mean 1.8 -> 4.2 degrees, session 42)
     for _ in range(config.iterations):
         s, g = field_values(fields, cams, x)
-        cons = _constraints(x, faces, s, g, cams, pull, config, w_sil, sil_share, reach_fields)
+        cons = _constraints(x, faces, s, g, cams, pull, config, w_sil, sil_share, fields)
         history.append({"rim": int(cons.rim.sum()), "outside": int(cons.outside.sum()), "pushed": cons.pushed})
         rhs = cons.b - lap_t @ (w_smooth * (lap @ (x - x0)) + (w_fair * fair_share)[:, None] * fair_residual(x)) \
             - config.anchor_weight * (x - x0)
@@ -1333,7 +1311,7 @@ def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cam
         after the last."""
         nonlocal x
         s, g = field_values(fields, cams, x)
-        solve = solver.operator(_constraints(x, faces, s, g, cams, pull, config, w_sil, sil_share, reach_fields).M,
+        solve = solver.operator(_constraints(x, faces, s, g, cams, pull, config, w_sil, sil_share, fields).M,
                                 config.descent_cg_iterations)
         x, losses = _descend(x, x0, faces, target, solve, step * config.edge_length, iterations, growth)
         return losses
@@ -1441,7 +1419,6 @@ def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cam
         "silhouette_iou_mean": [round(mean_w(iou_in), 4), round(mean_w(iou_out), 4)],
         "view_weights": [round(float(w), 3) for w in weights],
         "silhouette_weight": round(w_sil, 4), "fair_weight": round(fair, 4),
-        "outward_reach": reach_fields is not None,
         "fair_curvature_share": round(curvature_share, 4),
         "silhouette_share_thick": round(thick_share, 4),
         **({"rerender_error": [round(mean_w(rerendered[k].error), 4) for k in ("input", "refined")],

@@ -24,8 +24,8 @@ from lookingglass.normals.predict import NormalMaps
 from lookingglass.normals.stage import second_pass
 from lookingglass.physics.constants import IOR_GLASS
 from lookingglass.physics.environment import EnvironmentMap
-from lookingglass.refine import (RefineConfig, carve_by_hull, local_thickness, outward_reach_applies, refine_surface,
-                                 silhouette_iou, uniform_laplacian, worse_measures)
+from lookingglass.refine import (RefineConfig, carve_by_hull, local_thickness, refine_surface, silhouette_iou,
+                                 uniform_laplacian, worse_measures)
 from lookingglass.render.raycast import object_masks
 from lookingglass.render.tracer import RenderConfig, render_views, trace_two_bounce
 
@@ -528,7 +528,6 @@ def test_a_rim_whose_nearest_boundary_lies_behind_it_is_pushed_out():
     assert CONFIG.outward_reach
     assert nearest.report["constraints_first_last"][0]["pushed"] == 0
     assert pushed.report["constraints_first_last"][0]["pushed"] > 0
-    assert pushed.report["outward_reach"] and not nearest.report["outward_reach"]
     worst_nearest = min(nearest.report["silhouette_iou_after"])
     worst_pushed = min(pushed.report["silhouette_iou_after"])
     # measured: the input's worst view 0.602; pulled to the nearest boundary 0.764, pushed out 0.962
@@ -536,19 +535,6 @@ def test_a_rim_whose_nearest_boundary_lies_behind_it_is_pushed_out():
     # measured: CD 71.8 (the input), 38.7 (the nearest boundary), 5.7 (pushed out)
     cd_nearest, cd_pushed = shape_metrics(nearest.refined, gt)["cd"], shape_metrics(pushed.refined, gt)["cd"]
     assert cd_pushed < 0.3 * cd_nearest, (cd_nearest, cd_pushed)
-
-
-def test_the_outward_reach_is_held_back_on_coarse_masks_from_ten_views():
-    """On coarse masks (360 px wide and below at the default silhouette_width) ten or more views hold a
-    thin part, and the push trades one view's sub-pixel rim for another's (session 78); five views need
-    it at any width, and full-width masks keep it at any count."""
-    config = RefineConfig()
-    assert outward_reach_applies(config, 5, 128) and outward_reach_applies(config, 5, 480)
-    assert outward_reach_applies(config, 10, 480) and outward_reach_applies(config, 20, 400)
-    assert not outward_reach_applies(config, 10, 128) and not outward_reach_applies(config, 20, 240)
-    assert not outward_reach_applies(config, 10, 360)  # coarse_share 0.5
-    assert outward_reach_applies(dataclasses.replace(config, outward_reach_views_coarse=0), 20, 128)
-    assert not outward_reach_applies(dataclasses.replace(config, outward_reach=False), 5, 480)
 
 
 def test_an_input_made_worse_is_rejected(scene):
