@@ -328,6 +328,40 @@ def test_a_round_that_overshoots_is_retried_more_mildly(monkeypatch, worst, retr
     np.testing.assert_allclose(np.array(calls), [[b, 1, 1, 1] for b in boosts], rtol=1e-12)
 
 
+@pytest.mark.parametrize("with_reach, pushed, without_reach, returned", [
+    # the 20-view 128x96 test scene 17: short with the reach, every view on the target without it
+    ([0.9766, 0.9777, 0.9794], 5, [0.9749, 0.9803], 4),
+    # short without it too: the rounds with it stand
+    ([0.9766, 0.9777, 0.9794], 5, [0.9749, 0.9775, 0.9790], 2),
+    ([0.9766, 0.9777, 0.9794], 0, None, 2),  # no rim pushed: nothing to run again
+    ([0.975, 0.9815], 5, None, 1),  # the target met with the reach (the 20-view scene 0)
+])
+def test_rounds_left_short_after_pushing_rims_out_run_again_without_the_reach(monkeypatch, with_reach, pushed,
+                                                                               without_reach, returned):
+    """`silhouette_rounds_without_reach`, the rounds' bookkeeping alone over stand-in rounds (as above):
+    where the rounds end short and a round pushed rims out (`outward_reach`), the rounds run again
+    without the reach, and the best of those is returned only where every view meets the target."""
+    import lookingglass.refine as refine
+
+    V, calls = 4, []
+    config = RefineConfig(input_carve=False)
+    assert config.silhouette_rounds_without_reach and config.outward_reach
+
+    def one_round(mesh, hull, masks, cameras, config, weights, boost, capture, normals, start):
+        calls.append(config.outward_reach)
+        worst = (with_reach if config.outward_reach else without_reach)[calls.count(config.outward_reach) - 1]
+        return SimpleNamespace(report={"kept": "refined", "seconds": 1.0, "rims_pushed": pushed}, casts=worst)
+
+    monkeypatch.setattr(refine, "_refine_once", one_round)
+    monkeypatch.setattr(refine, "cast_iou", lambda casts, masks: np.array([casts, 0.99, 0.99, 0.99]))
+    result = refine_surface(None, SimpleNamespace(view_coverage=np.ones(V)), np.zeros((V, 2, 2), bool), None, config)
+    assert calls == [True] * len(with_reach) + [False] * len(without_reach or [])
+    rounds = result.report["silhouette_rounds"]
+    assert result.report["silhouette_round"] == returned
+    assert result.casts == rounds[returned]["worst_iou"]
+    assert [r.get("outward_reach", True) for r in rounds] == calls
+
+
 def test_a_view_with_a_stray_blob_is_down_weighted_and_named(scene):
     gt, cameras, masks, hull = scene
     bad = masks.copy()
