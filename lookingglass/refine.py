@@ -227,7 +227,7 @@ class RefineConfig:
               "(outward_reach), the rounds once more without the reach, returned where they land every view on the "
               "target (report.json: silhouette_rounds' outward_reach). On coarse masks seen by many views the push "
               "can trade one view's sub-pixel rim for another's: the 20-view 128x96 test scene 17 0.9794 -> 0.9803, "
-              "val240v20's key 0.9779 -> 0.9805 (docs/history.md, session 78).")
+              "val240v20's key 0.9779 -> 0.9801 (docs/history.md, session 78).")
     silhouette_iou_target: float = setting(0.98, "The silhouette IoU below which a view pulls harder in the next "
                                                  "round (silhouette_retries; issue 25's bar).", range=(0, 1))
     field_blur_px: float = setting(0.0, "Gaussian blur (sigma, pixels) of the masks' signed-distance fields the "
@@ -1165,11 +1165,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     if config.input_carve:
         mesh, input_report = carve_input(mesh, hull, masks, cameras, weights, config, capture, start)
 
-    # A penalty method on the views: a view the kept mesh still misses (IoU below the target) pulls
-    # harder in the next round, rerun from the input; the round whose kept mesh matches its worst
-    # view best is returned (a refined one first, below). Views whose masks disagree with the others
-    # (weight < 1) are not pushed.
-    trusted = weights >= 1
+    trusted = weights >= 1  # views whose masks disagree with the others (weight < 1) are not pushed
     rounds: list[dict] = []  # every round run, in order (report.json's silhouette_rounds)
 
     def record(result: RefineResult, boost: np.ndarray, lowered: list, **extra) -> tuple[np.ndarray, float]:
@@ -1192,8 +1188,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         pushed a rim out (`outward_reach`)."""
         # A penalty method on the views: a view the kept mesh still misses (IoU below the target) pulls
         # harder in the next round, rerun from the input; the round whose kept mesh matches its worst
-        # view best is returned (a refined one first, below). Views whose masks disagree with the others
-        # (weight < 1) are not pushed.
+        # view best is returned (a refined one first, below).
         boost = np.ones(V)
         # A round that returns a refined mesh beats one that returns the input: each round's keep check
         # weighed its refined mesh against that same input, within its tolerances (keep_tolerance), and
