@@ -66,6 +66,8 @@ def main(normals_varied: str, normals_fixed: str, shapes_varied: str, shapes_fix
             ax.scatter(ior, values, s=8, alpha=0.35, color=COLOURS[row])
             centre, mean = binned(ior, values)
             ax.plot(centre, mean, "-o", color=COLOURS[row], label=LABELS[row], ms=4)
+            print(f"{title[:30]:30s} {row:9s} bin means at {' '.join(f'{c:.2f}' for c in centre)}: "
+                  f"{' '.join(f'{m:+.3f}' for m in mean)} (all {values.mean():+.3f})")
         ax.axvline(IOR_GLASS, color="k", lw=0.8, ls="--")
         ax.axhline(0, color="k", lw=0.5)
         ax.set_xlabel("object's IoR (the pipeline assumes 1.4723, dashed)", fontsize=8)
