@@ -228,6 +228,12 @@ class RefineConfig:
               "target (report.json: silhouette_rounds' outward_reach). On coarse masks seen by many views the push "
               "can trade one view's sub-pixel rim for another's: the 20-view 128x96 test scene 17 0.9794 -> 0.9803, "
               "val240v20's key 0.9779 -> 0.9801 (docs/history.md, session 78).")
+    passes: int = setting(1, "Times the whole stage runs, each pass from the mesh the one before kept, while a pass "
+                             "keeps its refined mesh (its keep check weighs it against the previous pass's, so a "
+                             "pass never makes the mesh worse on the measures the stage optimizes). Each pass runs "
+                             "the normal net again on a better mesh, and its new targets move the mesh on, where "
+                             "more steps against the same targets do not (report.json: passes).",
+                      range=(1, 5))
     silhouette_iou_target: float = setting(0.98, "The silhouette IoU below which a view pulls harder in the next "
                                                  "round (silhouette_retries; issue 25's bar).", range=(0, 1))
     field_blur_px: float = setting(0.0, "Gaussian blur (sigma, pixels) of the masks' signed-distance fields the "
@@ -1131,7 +1137,44 @@ def worse_measures(iou_in: np.ndarray, iou_out: np.ndarray, weights: np.ndarray,
 def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cameras: Cameras,
                    config: RefineConfig | None = None, view_coverage: np.ndarray | None = None,
                    capture=None, normals=None, view_names=None) -> RefineResult:
-    """Refine `mesh` (capture frame, closed) against `masks` (V, H, W) bool seen by `cameras`
+    """The refine stage: `config.passes` passes of `refine_pass` (below, which says what the arguments
+    are), each from the mesh the pass before kept, while a pass keeps its refined mesh. The result is
+    the last pass's, its report's input measures (`*_before`, the re-rendering error's first value)
+    the first pass's input's, and report.json's `passes` says what each pass kept, its worst view,
+    re-rendering error and seconds."""
+    config = config or RefineConfig()
+    start_time = time.perf_counter()
+    results: list[RefineResult] = []
+    for index in range(config.passes):
+        results.append(refine_pass(results[-1].mesh if results else mesh, hull, masks, cameras, config,
+                                   view_coverage, capture, normals, view_names, warn=not results))
+        if results[-1].report["kept"] != "refined":
+            break
+    if len(results) == 1:
+        return results[0]
+    first, kept = results[0], [r for r in results if r.report["kept"] == "refined"]
+    best = kept[-1] if kept else first  # a pass that keeps its input returns the pass before's mesh
+    report = dict(best.report)
+    for key in ("terms_before", "silhouette_iou_before"):
+        report[key] = first.report[key]
+    report["silhouette_iou_mean"] = [first.report["silhouette_iou_mean"][0], best.report["silhouette_iou_mean"][1]]
+    if "rerender_error" in best.report:
+        report["rerender_error"] = [first.report["rerender_error"][0], best.report["rerender_error"][1]]
+    for key in ("input_carve",):
+        if key in first.report:
+            report[key] = first.report[key]
+    report["passes"] = [{"kept": r.report["kept"], **({"kept_why": r.report["kept_why"]} if "kept_why" in r.report else {}),
+                         "worst_iou": min(r.report["silhouette_iou_after"]), "seconds": r.report["seconds"],
+                         **({"rerender_error": r.report["rerender_error"]} if "rerender_error" in r.report else {})}
+                        for r in results]
+    report["seconds"] = round(time.perf_counter() - start_time, 2)
+    return dataclasses.replace(best, report=report)
+
+
+def refine_pass(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cameras: Cameras,
+                config: RefineConfig | None = None, view_coverage: np.ndarray | None = None,
+                capture=None, normals=None, view_names=None, warn: bool = True) -> RefineResult:
+    """One pass of the refine stage: refine `mesh` (capture frame, closed) against `masks` (V, H, W) bool seen by `cameras`
     (capture frame, H x W). `hull` gives the normalized frame; `view_coverage` (V,) the share of
     each mask the hull covers (default: `hull.view_coverage` when it has one per view, else every
     view counts fully). capture: the loaded capture (photos, environment map, ior) for the
@@ -1144,7 +1187,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     input measures are then the cut mesh's) and the report, of the round (`silhouette_retries`) whose kept mesh matches its
     worst view best, of those that keep their refined mesh if any do (or a round run again without the
     normal term, `silhouette_round_without_normals`, or the rounds run again without the outward reach,
-    `silhouette_rounds_without_reach`). Warns (warnings.warn) for every
+    `silhouette_rounds_without_reach`). Warns (warnings.warn; where `warn`: the first pass) for every
     down-weighted view, named by `view_names` (V,) when given (its mask file)."""
     config = config or RefineConfig()
     start_time = time.perf_counter()
@@ -1154,7 +1197,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         view_coverage = hull.view_coverage if len(hull.view_coverage) == V else np.ones(V)
     weights = view_weights(view_coverage, config)
     low = np.flatnonzero(weights < 1)
-    if len(low):
+    if len(low) and warn:
         warnings.warn("refine: down-weighted view(s) " + ", ".join(
             f"{v} ({f'{view_names[v]}, ' if view_names is not None else ''}weight {weights[v]:.2f}: the hull covers "
             f"{100 * view_coverage[v]:.0f}% of its mask)" for v in low)

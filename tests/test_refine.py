@@ -362,6 +362,46 @@ def test_rounds_left_short_after_pushing_rims_out_run_again_without_the_reach(mo
     assert [r.get("outward_reach", True) for r in rounds] == calls
 
 
+@pytest.mark.parametrize("kept, passes, returned", [
+    (["refined", "refined"], 2, 1),
+    (["refined", "input"], 2, 0),  # the second pass keeps its input: the first pass's mesh
+    (["input"], 3, None),  # the first keeps its input: no more passes (the same input, the same pass)
+    (["refined", "refined", "input"], 3, 1),
+    (["refined"], 1, 0),
+])
+def test_each_pass_starts_from_the_mesh_the_pass_before_kept(monkeypatch, kept, passes, returned):
+    """`passes`, the bookkeeping alone over stand-in passes: each pass refines what the one before kept,
+    the passes stop at one that keeps its input, and the report gives the first input's measures beside
+    the returned mesh's, and each pass's."""
+    import lookingglass.refine as refine
+    from lookingglass.refine import RefineResult
+
+    calls = []
+
+    def one_pass(mesh, hull, masks, cameras, config, view_coverage, capture, normals, view_names, warn):
+        i = len(calls)
+        calls.append((mesh, warn))
+        report = {"kept": kept[i], "terms_before": {"smooth": i}, "silhouette_iou_before": [i / 10],
+                  "silhouette_iou_mean": [i / 10, 0.99], "silhouette_iou_after": [0.98 + i / 1000],
+                  "rerender_error": [0.2 - i / 100, 0.19 - i / 100], "seconds": 1.0}
+        return RefineResult(f"mesh {i}" if kept[i] == "refined" else mesh, f"mesh {i}", report, None, i)
+
+    monkeypatch.setattr(refine, "refine_pass", one_pass)
+    result = refine_surface("input", None, None, None, RefineConfig(passes=passes))
+    assert calls == [("input", True)] + [(f"mesh {i}", False) for i in range(len(calls) - 1)]
+    assert len(calls) == min(passes, kept.index("input") + 1 if "input" in kept else passes)
+    assert result.mesh == ("input" if returned is None else f"mesh {returned}")
+    report = result.report
+    assert report["kept"] == ("input" if returned is None else "refined")
+    if len(calls) > 1:
+        assert [p["kept"] for p in report["passes"]] == kept[:len(calls)]
+        assert report["silhouette_iou_before"] == [0.0] and report["terms_before"] == {"smooth": 0}
+        assert report["rerender_error"] == [0.2, round(0.19 - returned / 100, 6)]
+        assert report["silhouette_iou_after"] == [0.98 + returned / 1000]
+    else:
+        assert "passes" not in report
+
+
 def test_a_view_with_a_stray_blob_is_down_weighted_and_named(scene):
     gt, cameras, masks, hull = scene
     bad = masks.copy()
