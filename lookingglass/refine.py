@@ -1146,8 +1146,23 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     start_time = time.perf_counter()
     results: list[RefineResult] = []
     for index in range(config.passes):
-        results.append(refine_pass(results[-1].mesh if results else mesh, hull, masks, cameras, config,
-                                   view_coverage, capture, normals, view_names, warn=not results))
+        if not results:
+            results.append(refine_pass(mesh, hull, masks, cameras, config, view_coverage, capture, normals,
+                                       view_names))
+        else:  # from the kept mesh, which the pass before measured and, where it could, cut to the hull
+            last = results[-1]
+            seed = {"input_casts": last.casts,
+                    **({"input_rerendering": last.rerendering} if last.rerendering is not None else {})}
+            result = refine_pass(last.mesh, hull, masks, cameras, dataclasses.replace(config, input_carve=False),
+                                 view_coverage, capture, normals, view_names, warn=False, seed=seed)
+            before, after = (_worst_trusted(r) for r in (last, result))
+            if result.report["kept"] == "refined" and after < config.silhouette_iou_target <= before:
+                # the keep check lets the worst view fall by keep_tolerance; a pass must not take the
+                # mesh off the target the pass before met
+                result = dataclasses.replace(result, report={
+                    **result.report, "kept": "input",
+                    "kept_why": f"the worst view's IoU {before:.4f} -> {after:.4f}, below the target"})
+            results.append(result)
         if results[-1].report["kept"] != "refined":
             break
     if len(results) == 1:
@@ -1164,18 +1179,25 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         if key in first.report:
             report[key] = first.report[key]
     report["passes"] = [{"kept": r.report["kept"], **({"kept_why": r.report["kept_why"]} if "kept_why" in r.report else {}),
-                         "worst_iou": min(r.report["silhouette_iou_after"]), "seconds": r.report["seconds"],
+                         "worst_iou": round(_worst_trusted(r), 4), "seconds": r.report["seconds"],
                          **({"rerender_error": r.report["rerender_error"]} if "rerender_error" in r.report else {})}
                         for r in results]
     report["seconds"] = round(time.perf_counter() - start_time, 2)
     return dataclasses.replace(best, report=report)
 
 
+def _worst_trusted(result: RefineResult) -> float:
+    """The worst silhouette IoU of `result`'s kept mesh over the views of full weight."""
+    iou, trusted = np.asarray(result.report["silhouette_iou_after"]), np.asarray(result.view_weights) >= 1
+    return float(iou[trusted].min()) if trusted.any() else 1.0
+
+
 def refine_pass(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cameras: Cameras,
                 config: RefineConfig | None = None, view_coverage: np.ndarray | None = None,
-                capture=None, normals=None, view_names=None, warn: bool = True) -> RefineResult:
-    """One pass of the refine stage: refine `mesh` (capture frame, closed) against `masks` (V, H, W) bool seen by `cameras`
-    (capture frame, H x W). `hull` gives the normalized frame; `view_coverage` (V,) the share of
+                capture=None, normals=None, view_names=None, warn: bool = True,
+                seed: dict | None = None) -> RefineResult:
+    """One pass of the refine stage: refine `mesh` (capture frame, closed) against `masks` (V, H, W)
+    bool seen by `cameras` (capture frame, H x W). `hull` gives the normalized frame; `view_coverage` (V,) the share of
     each mask the hull covers (default: `hull.view_coverage` when it has one per view, else every
     view counts fully). capture: the loaded capture (photos, environment map, ior) for the
     re-rendering check and the photometric term (both skipped without). normals: for the normal
@@ -1203,7 +1225,9 @@ def refine_pass(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, came
             f"{100 * view_coverage[v]:.0f}% of its mask)" for v in low)
             + ": their masks disagree with the other views", stacklevel=2)
 
-    start: dict = {}  # what every round starts from (filled by the first; the input carve's casts and renders)
+    # what every round starts from (filled by the first; the input carve's casts and renders; `seed`: the
+    # input's casts and re-rendering where a pass before made them)
+    start: dict = dict(seed or {})
     input_report: dict = {}
     if config.input_carve:
         mesh, input_report = carve_input(mesh, hull, masks, cameras, weights, config, capture, start)

@@ -362,42 +362,53 @@ def test_rounds_left_short_after_pushing_rims_out_run_again_without_the_reach(mo
     assert [r.get("outward_reach", True) for r in rounds] == calls
 
 
-@pytest.mark.parametrize("kept, passes, returned", [
-    (["refined", "refined"], 2, 1),
-    (["refined", "input"], 2, 0),  # the second pass keeps its input: the first pass's mesh
-    (["input"], 3, None),  # the first keeps its input: no more passes (the same input, the same pass)
-    (["refined", "refined", "input"], 3, 1),
-    (["refined"], 1, 0),
+@pytest.mark.parametrize("kept, worst, passes, returned", [
+    (["refined", "refined"], [0.981, 0.982], 2, 1),
+    (["refined", "input"], [0.981, 0.982], 2, 0),  # the second pass keeps its input: the first pass's mesh
+    (["input"], [0.981], 3, None),  # the first keeps its input: no more passes (the same input, the same pass)
+    (["refined", "refined", "input"], [0.981, 0.982, 0.983], 3, 1),
+    (["refined"], [0.981], 1, 0),
+    # within the keep check's tolerance, but off the target the first pass met: not taken
+    (["refined", "refined"], [0.981, 0.9795], 2, 0),
+    (["refined", "refined"], [0.975, 0.974], 2, 1),  # short before too: the keep check decides
 ])
-def test_each_pass_starts_from_the_mesh_the_pass_before_kept(monkeypatch, kept, passes, returned):
+def test_each_pass_starts_from_the_mesh_the_pass_before_kept(monkeypatch, kept, worst, passes, returned):
     """`passes`, the bookkeeping alone over stand-in passes: each pass refines what the one before kept,
-    the passes stop at one that keeps its input, and the report gives the first input's measures beside
-    the returned mesh's, and each pass's."""
+    the passes stop at one that keeps its input or takes the worst view below the target the pass before
+    met, and the report gives the first input's measures beside the returned mesh's, and each pass's."""
     import lookingglass.refine as refine
     from lookingglass.refine import RefineResult
 
     calls = []
 
-    def one_pass(mesh, hull, masks, cameras, config, view_coverage, capture, normals, view_names, warn):
+    def one_pass(mesh, hull, masks, cameras, config, view_coverage, capture, normals, view_names, warn=True,
+                 seed=None):
         i = len(calls)
         calls.append((mesh, warn))
-        report = {"kept": kept[i], "terms_before": {"smooth": i}, "silhouette_iou_before": [i / 10],
-                  "silhouette_iou_mean": [i / 10, 0.99], "silhouette_iou_after": [0.98 + i / 1000],
+        # a later pass starts from what the pass before kept and measured: not cut to the hull again
+        assert config.input_carve == (i == 0) and (seed is None) == (i == 0)
+        assert seed is None or seed["input_casts"] == i - 1
+        report = {"kept": kept[i], "terms_before": {"smooth": i}, "silhouette_iou_before": [i / 10, 1.0],
+                  "silhouette_iou_mean": [i / 10, 0.99], "silhouette_iou_after": [worst[i], 0.0],
                   "rerender_error": [0.2 - i / 100, 0.19 - i / 100], "seconds": 1.0}
-        return RefineResult(f"mesh {i}" if kept[i] == "refined" else mesh, f"mesh {i}", report, None, i)
+        # the second view has weight 0 (its mask disagrees with the others): not counted
+        return RefineResult(f"mesh {i}" if kept[i] == "refined" else mesh, f"mesh {i}", report, np.array([1.0, 0.0]),
+                            i)
 
     monkeypatch.setattr(refine, "refine_pass", one_pass)
     result = refine_surface("input", None, None, None, RefineConfig(passes=passes))
     assert calls == [("input", True)] + [(f"mesh {i}", False) for i in range(len(calls) - 1)]
-    assert len(calls) == min(passes, kept.index("input") + 1 if "input" in kept else passes)
+    stops = [i for i in range(len(kept)) if kept[i] == "input" or (i and worst[i] < 0.98 <= worst[i - 1])]
+    assert len(calls) == min(passes, stops[0] + 1 if stops else passes)
     assert result.mesh == ("input" if returned is None else f"mesh {returned}")
     report = result.report
     assert report["kept"] == ("input" if returned is None else "refined")
     if len(calls) > 1:
-        assert [p["kept"] for p in report["passes"]] == kept[:len(calls)]
-        assert report["silhouette_iou_before"] == [0.0] and report["terms_before"] == {"smooth": 0}
-        assert report["rerender_error"] == [0.2, round(0.19 - returned / 100, 6)]
-        assert report["silhouette_iou_after"] == [0.98 + returned / 1000]
+        assert [p["kept"] for p in report["passes"]] == [k if i not in stops else "input"
+                                                         for i, k in enumerate(kept[:len(calls)])]
+        assert report["silhouette_iou_before"] == [0.0, 1.0] and report["terms_before"] == {"smooth": 0}
+        assert report["rerender_error"] == [0.2, 0.19 - returned / 100]
+        assert report["silhouette_iou_after"] == [worst[returned], 0.0]
     else:
         assert "passes" not in report
 
