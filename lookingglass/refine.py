@@ -55,6 +55,12 @@ surface (capture frame, closed) and, in the hull-normalized frame (max |p| = 1):
    term undid its harder pull runs again without the term (`silhouette_round_without_normals`), and
    where rims were pushed out, the rounds run again without the outward reach
    (`silhouette_rounds_without_reach`); each is returned only where it lands every view on the target.
+6. runs 0-5 again (`passes`, 2) from the mesh it kept, while a pass keeps its refined mesh: the
+   normal network, fed that better mesh, answers with better normals, and the term follows them
+   (the same pass with the first pass's answer reused hardly moves: the bracket's CD 7.23 -> 7.14,
+   against 5.58 with the net run again). A later pass skips the input carve, and is returned only
+   where its keep check keeps it and it does not take the worst view below the target the pass
+   before met (report.json: `passes`).
 
 A view whose mask the visual hull covers poorly (`VisualHull.view_coverage`: a stray blob, a
 mask of something else, a cut-off object) disagrees with the other views; it is down-weighted
@@ -228,7 +234,7 @@ class RefineConfig:
               "target (report.json: silhouette_rounds' outward_reach). On coarse masks seen by many views the push "
               "can trade one view's sub-pixel rim for another's: the 20-view 128x96 test scene 17 0.9794 -> 0.9803, "
               "val240v20's key 0.9779 -> 0.9801 (docs/history.md, session 78).")
-    passes: int = setting(1, "Times the whole stage runs, each pass from the mesh the one before kept, while a pass "
+    passes: int = setting(2, "Times the whole stage runs, each pass from the mesh the one before kept, while a pass "
                              "keeps its refined mesh (its keep check weighs it against the previous pass's, so a "
                              "pass never makes the mesh worse on the measures the stage optimizes). Each pass runs "
                              "the normal net again on a better mesh, and its new targets move the mesh on, where "

@@ -29,9 +29,10 @@ from lookingglass.refine import (RefineConfig, carve_by_hull, local_thickness, r
 from lookingglass.render.raycast import object_masks
 from lookingglass.render.tracer import RenderConfig, render_views, trace_two_bounce
 
-# a coarser surface than the default (0.018) keeps the tests fast; the method is the same. One round:
-# the tests measure what a round does (the penalty rounds, `silhouette_retries`, have their own test)
-CONFIG = RefineConfig(edge_length=0.035, silhouette_retries=0)
+# a coarser surface than the default (0.018) keeps the tests fast; the method is the same. One round and
+# one pass: the tests measure what a round does (the penalty rounds, `silhouette_retries`, and the passes
+# have their own tests)
+CONFIG = RefineConfig(edge_length=0.035, silhouette_retries=0, passes=1)
 
 
 def ellipsoid_scene(width: int = 320, height: int = 240):
