@@ -1145,9 +1145,9 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
                    capture=None, normals=None, view_names=None) -> RefineResult:
     """The refine stage: `config.passes` passes of `refine_pass` (below, which says what the arguments
     are), each from the mesh the pass before kept, while a pass keeps its refined mesh. The result is
-    the last pass's, its report's input measures (`*_before`, the re-rendering error's first value)
-    the first pass's input's, and report.json's `passes` says what each pass kept, its worst view,
-    re-rendering error and seconds."""
+    the last pass's that kept its refined mesh, its report's input measures (`*_before`, the
+    re-rendering errors' input values, `input_carve`) the first pass's input's, and report.json's
+    `passes` says what each pass kept (and why not), its worst view, re-rendering error and seconds."""
     config = config or RefineConfig()
     start_time = time.perf_counter()
     results: list[RefineResult] = []
@@ -1181,6 +1181,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     report["silhouette_iou_mean"] = [first.report["silhouette_iou_mean"][0], best.report["silhouette_iou_mean"][1]]
     if "rerender_error" in best.report:
         report["rerender_error"] = [first.report["rerender_error"][0], best.report["rerender_error"][1]]
+        report["rerender_error_views"] = {**best.report["rerender_error_views"],
+                                          "input": first.report["rerender_error_views"]["input"]}
     for key in ("input_carve",):
         if key in first.report:
             report[key] = first.report[key]

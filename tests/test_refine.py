@@ -391,7 +391,8 @@ def test_each_pass_starts_from_the_mesh_the_pass_before_kept(monkeypatch, kept, 
         assert seed is None or seed["input_casts"] == i - 1
         report = {"kept": kept[i], "terms_before": {"smooth": i}, "silhouette_iou_before": [i / 10, 1.0],
                   "silhouette_iou_mean": [i / 10, 0.99], "silhouette_iou_after": [worst[i], 0.0],
-                  "rerender_error": [0.2 - i / 100, 0.19 - i / 100], "seconds": 1.0}
+                  "rerender_error": [0.2 - i / 100, 0.19 - i / 100], "seconds": 1.0,
+                  "rerender_error_views": {"input": [i], "refined": [i + 0.5]}}
         # the second view has weight 0 (its mask disagrees with the others): not counted
         return RefineResult(f"mesh {i}" if kept[i] == "refined" else mesh, f"mesh {i}", report, np.array([1.0, 0.0]),
                             i)
@@ -409,6 +410,7 @@ def test_each_pass_starts_from_the_mesh_the_pass_before_kept(monkeypatch, kept, 
                                                          for i, k in enumerate(kept[:len(calls)])]
         assert report["silhouette_iou_before"] == [0.0, 1.0] and report["terms_before"] == {"smooth": 0}
         assert report["rerender_error"] == [0.2, 0.19 - returned / 100]
+        assert report["rerender_error_views"] == {"input": [0], "refined": [returned + 0.5]}
         assert report["silhouette_iou_after"] == [worst[returned], 0.0]
     else:
         assert "passes" not in report

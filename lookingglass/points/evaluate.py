@@ -119,6 +119,10 @@ class _ShapeEvaluation:
                                          # the penalty rounds run and the one returned, and what they cost
                                          "rounds": len(refined.report.get("silhouette_rounds", [None])),
                                          "round": refined.report.get("silhouette_round", 0),
+                                         # what each pass kept (`passes`): "refined" twice where the second
+                                         # pass's mesh was kept
+                                         "passes": [p["kept"] for p in refined.report.get(
+                                             "passes", [{"kept": refined.report["kept"]}])],
                                          "seconds": refined.report["seconds"],
                                          # whether the input was cut to the hull first (its input carve)
                                          "input_carved": bool(refined.report.get("input_carve", {}).get("kept")),

@@ -176,9 +176,11 @@ def numbers_section(data: ReportData) -> str:
         before, after = refine["rerender_error"]
         width = r.get("config", {}).get("refine", {}).get("rerender_width", "?")
         surface = "surface stage's mesh" + (" cut to the visual hull" if refine.get("input_carve", {}).get("kept") else "")
+        passes = sum(p["kept"] == "refined" for p in refine.get("passes", []))
         errors.append(f'<p>Refine stage (re-rendered at {width} px wide, weighted over the views): the {surface} '
                       f'<b>{before:.4f}</b>, the refined one <b>{after:.4f}</b>; kept: the '
-                      f'{"refined mesh" if refine.get("kept") == "refined" else surface}.</p>')
+                      f'{"refined mesh" if refine.get("kept") == "refined" else surface}'
+                      f'{f" (refined in {passes} passes)" if passes > 1 else ""}.</p>')
     series = [("visual hull", HULL), ("result", MESH)] if any(v.error_hull is not None for v in data.views) \
         else [("result", MESH)]
     rows = [(f"view {v.index:02d}", ([v.error_hull] if len(series) == 2 else []) + [v.error]) for v in data.views]
