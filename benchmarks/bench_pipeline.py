@@ -76,9 +76,13 @@ def main() -> int:
         print(f"{name:14s} {sec:7.2f} s{target(name)}")
     print(f"{'total':14s} {total:7.2f} s  ({total / TARGET_SECONDS:.2f} of the {TARGET_SECONDS:.0f} s target)")
     print(f"peak memory    {peak:7.0f} MB ({peak / TARGET_MB:.2f} of the {TARGET_MB:.0f} MB target)")
-    # the refine stage's own steps (the first run's), to see where its seconds go
-    refine_steps = next((s.get("timings", {}) for s in reports[0]["stages"] if s["name"] == "refine"), {})
-    refine_line = ", ".join(f"{k} {v:.1f} s" for k, v in refine_steps.items())
+    # the refine stage's own steps (the first run's; of the pass returned), to see where its seconds go
+    refine_stage = next((s for s in reports[0]["stages"] if s["name"] == "refine"), {})
+    refine_line = ", ".join(f"{k} {v:.1f} s" for k, v in refine_stage.get("timings", {}).items())
+    passes_line = ", ".join(f"{p['seconds']:.1f} s ({'kept' if p['kept'] == 'refined' else 'not kept'})"
+                            for p in refine_stage.get("passes", []))
+    if passes_line:
+        print(f"refine passes  {passes_line}")
     if refine_line:
         print(f"refine steps   {refine_line}")
     gpu_peak = max(rep.get("gpu_peak_memory_mb", 0.0) for rep in reports)
@@ -107,8 +111,10 @@ def main() -> int:
               + (f"surface.ply {surface_scores['cd']:.2f} / {surface_scores['cdn_mean']:.2f}, " if surface_scores else "")
               + f"mesh.ply {mesh_scores['cd']:.2f} / {mesh_scores['cdn_mean']:.2f} "
               "(one scene; the test-split tables are in docs/results.md)."]
+    if passes_line:
+        lines += ["", f"The refine stage's passes (the first run; `RefineConfig.passes`): {passes_line}."]
     if refine_line:
-        lines += ["", f"The refine stage's steps (the first run; they overlap): {refine_line}."]
+        lines += ["", f"The refine stage's steps (the first run, the pass returned; they overlap): {refine_line}."]
     if estimates:
         e = estimates[0]
         net = e.get("learned")
