@@ -1153,7 +1153,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     config = config or RefineConfig()
     start_time = time.perf_counter()
     results: list[RefineResult] = []
-    for index in range(config.passes):
+    for _ in range(config.passes):
         if not results:
             results.append(refine_pass(mesh, hull, masks, cameras, config, view_coverage, capture, normals,
                                        view_names))
@@ -1185,12 +1185,11 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         report["rerender_error"] = [first.report["rerender_error"][0], best.report["rerender_error"][1]]
         report["rerender_error_views"] = {**best.report["rerender_error_views"],
                                           "input": first.report["rerender_error_views"]["input"]}
-    for key in ("input_carve",):
-        if key in first.report:
-            report[key] = first.report[key]
-    report["passes"] = [{"kept": r.report["kept"], **({"kept_why": r.report["kept_why"]} if "kept_why" in r.report else {}),
-                         "worst_iou": round(_worst_trusted(r), 4), "seconds": r.report["seconds"],
-                         **({"rerender_error": r.report["rerender_error"]} if "rerender_error" in r.report else {})}
+    if "input_carve" in first.report:
+        report["input_carve"] = first.report["input_carve"]
+    report["passes"] = [{"kept": r.report["kept"], "worst_iou": round(_worst_trusted(r), 4),
+                         "seconds": r.report["seconds"],
+                         **{k: r.report[k] for k in ("kept_why", "rerender_error") if k in r.report}}
                         for r in results]
     report["seconds"] = round(time.perf_counter() - start_time, 2)
     return dataclasses.replace(best, report=report)
@@ -1207,8 +1206,8 @@ def refine_pass(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, came
                 capture=None, normals=None, view_names=None, warn: bool = True,
                 seed: dict | None = None) -> RefineResult:
     """One pass of the refine stage: refine `mesh` (capture frame, closed) against `masks` (V, H, W)
-    bool seen by `cameras` (capture frame, H x W). `hull` gives the normalized frame; `view_coverage` (V,) the share of
-    each mask the hull covers (default: `hull.view_coverage` when it has one per view, else every
+    bool seen by `cameras` (capture frame, H x W). `hull` gives the normalized frame; `view_coverage`
+    (V,) the share of each mask the hull covers (default: `hull.view_coverage` when it has one per view, else every
     view counts fully). capture: the loaded capture (photos, environment map, ior) for the
     re-rendering check and the photometric term (both skipped without). normals: for the normal
     term, a function that runs the normal stage (`run_normal_stage`) on a mesh in the capture frame
@@ -1220,7 +1219,9 @@ def refine_pass(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, came
     worst view best, of those that keep their refined mesh if any do (or a round run again without the
     normal term, `silhouette_round_without_normals`, or the rounds run again without the outward reach,
     `silhouette_rounds_without_reach`). Warns (warnings.warn; where `warn`: the first pass) for every
-    down-weighted view, named by `view_names` (V,) when given (its mask file)."""
+    down-weighted view, named by `view_names` (V,) when given (its mask file). seed: what a pass
+    before measured of `mesh` (its silhouettes "input_casts" and, with photos, its "input_rerendering"),
+    reused instead of measured again."""
     config = config or RefineConfig()
     start_time = time.perf_counter()
     masks = np.asarray(masks, bool)
