@@ -1153,27 +1153,22 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     its other entries (the rounds, the normal term, the timings) are the returned pass's."""
     config = config or RefineConfig()
     start_time = time.perf_counter()
-    results: list[RefineResult] = []
-    for _ in range(config.passes):
-        if not results:
-            results.append(refine_pass(mesh, hull, masks, cameras, config, view_coverage, capture, normals,
-                                       view_names))
-        else:  # from the kept mesh, which the pass before measured and, where it could, cut to the hull
-            last = results[-1]
-            seed = {"input_casts": last.casts,
-                    **({"input_rerendering": last.rerendering} if last.rerendering is not None else {})}
-            result = refine_pass(last.mesh, hull, masks, cameras, dataclasses.replace(config, input_carve=False),
-                                 view_coverage, capture, normals, view_names, warn=False, seed=seed)
-            before, after = (_worst_trusted(r) for r in (last, result))
-            if result.report["kept"] == "refined" and after < config.silhouette_iou_target <= before:
-                # the keep check lets the worst view fall by keep_tolerance; a pass must not take the
-                # mesh off the target the pass before met
-                result = dataclasses.replace(result, report={
-                    **result.report, "kept": "input",
-                    "kept_why": f"the worst view's IoU {before:.4f} -> {after:.4f}, below the target"})
-            results.append(result)
-        if results[-1].report["kept"] != "refined":
-            break
+    results = [refine_pass(mesh, hull, masks, cameras, config, view_coverage, capture, normals, view_names)]
+    later = dataclasses.replace(config, input_carve=False)  # the kept mesh was cut to the hull where it could be
+    while len(results) < config.passes and results[-1].report["kept"] == "refined":
+        last = results[-1]  # measured by its pass: its silhouettes and re-rendering are the next pass's input's
+        seed = {"input_casts": last.casts,
+                **({"input_rerendering": last.rerendering} if last.rerendering is not None else {})}
+        result = refine_pass(last.mesh, hull, masks, cameras, later, view_coverage, capture, normals, view_names,
+                             warn=False, seed=seed)
+        before, after = (_worst_trusted(r) for r in (last, result))
+        if result.report["kept"] == "refined" and after < config.silhouette_iou_target <= before:
+            # the keep check lets the worst view fall by keep_tolerance; a pass must not take the
+            # mesh off the target the pass before met
+            result = dataclasses.replace(result, report={
+                **result.report, "kept": "input",
+                "kept_why": f"the worst view's IoU {before:.4f} -> {after:.4f}, below the target"})
+        results.append(result)
     if len(results) == 1:
         return results[0]
     first, kept = results[0], [r for r in results if r.report["kept"] == "refined"]
