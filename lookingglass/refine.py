@@ -1169,8 +1169,6 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
                 **result.report, "kept": "input",
                 "kept_why": f"the worst view's IoU {before:.4f} -> {after:.4f}, below the target"})
         results.append(result)
-    if len(results) == 1:
-        return results[0]
     first, kept = results[0], [r for r in results if r.report["kept"] == "refined"]
     best = kept[-1] if kept else first  # a pass that keeps its input returns the pass before's mesh
     report = dict(best.report)

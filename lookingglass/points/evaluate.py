@@ -121,8 +121,7 @@ class _ShapeEvaluation:
                                          "round": refined.report.get("silhouette_round", 0),
                                          # what each pass kept (`passes`): "refined" twice where the second
                                          # pass's mesh was kept
-                                         "passes": [p["kept"] for p in refined.report.get(
-                                             "passes", [{"kept": refined.report["kept"]}])],
+                                         "passes": [p["kept"] for p in refined.report["passes"]],
                                          "seconds": refined.report["seconds"],
                                          # whether the input was cut to the hull first (its input carve)
                                          "input_carved": bool(refined.report.get("input_carve", {}).get("kept")),
