@@ -1165,9 +1165,9 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         if result.report["kept"] == "refined" and after < config.silhouette_iou_target <= before:
             # the keep check lets the worst view fall by keep_tolerance; a pass must not take the
             # mesh off the target the pass before met
-            result = dataclasses.replace(result, report={
-                **result.report, "kept": "input",
-                "kept_why": f"the worst view's IoU {before:.4f} -> {after:.4f}, below the target"})
+            result = dataclasses.replace(result, mesh=last.mesh, casts=last.casts, rerendering=last.rerendering,
+                                         report={**result.report, "kept": "input", "kept_why":
+                                                 f"the worst view's IoU {before:.4f} -> {after:.4f}, below the target"})
         results.append(result)
     first, kept = results[0], [r for r in results if r.report["kept"] == "refined"]
     best = kept[-1] if kept else first  # a pass that keeps its input returns the pass before's mesh
