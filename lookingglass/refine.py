@@ -55,9 +55,9 @@ surface (capture frame, closed) and, in the hull-normalized frame (max |p| = 1):
    term undid its harder pull runs again without the term (`silhouette_round_without_normals`), and
    where rims were pushed out, the rounds run again without the outward reach
    (`silhouette_rounds_without_reach`); each is returned only where it lands every view on the target.
-6. runs 0-5 again (`passes`, 2) from the mesh it kept, while a pass keeps its refined mesh: the
-   normal network, fed that better mesh, answers with better normals, and the term follows them
-   (the same pass with the first pass's answer reused hardly moves: the bracket's CD 7.23 -> 7.14,
+6. runs 0-5 again (`passes`, 2; one more from `extra_pass_views`, 20, views on) from the mesh it
+   kept, while a pass keeps its refined mesh: the normal network, fed that better mesh, answers
+   with better normals, and the term follows them (the same pass with the first pass's answer reused hardly moves: the bracket's CD 7.23 -> 7.14,
    against 5.58 with the net run again). A later pass skips the input carve, and is returned only
    where its keep check keeps it and it does not take the worst view below the target the pass
    before met (report.json: `passes`).
@@ -242,6 +242,12 @@ class RefineConfig:
                              "more steps against the same targets do not (report.json: passes). 1 -> 2 on val480: "
                              "CD 4.21 -> 3.68, CDN-mean 7.63 -> 7.13 (docs/history.md, session 79).",
                       range=(1, 5))
+    extra_pass_views: int = setting(20, "View count from which the stage runs one pass more than passes (0: never). "
+                                        "Twenty masks hold the silhouettes, and the third pass's new normals move "
+                                        "the concave parts on: val480v20 CD 2.82 -> 2.53 (0.47 -> 0.43 x the hull's; "
+                                        "the bracket 7.96 -> 5.66), CDN-mean 5.58 -> 5.34. At 10 views a third pass "
+                                        "would cost ~10 s against issue 25's 30 s for the stage (docs/history.md, "
+                                        "sessions 80-81).", range=(0, None))
     silhouette_iou_target: float = setting(0.98, "The silhouette IoU below which a view pulls harder in the next "
                                                  "round (silhouette_retries; issue 25's bar).", range=(0, 1))
     field_blur_px: float = setting(0.0, "Gaussian blur (sigma, pixels) of the masks' signed-distance fields the "
@@ -1146,7 +1152,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
                    config: RefineConfig | None = None, view_coverage: np.ndarray | None = None,
                    capture=None, normals=None, view_names=None) -> RefineResult:
     """The refine stage: `config.passes` passes of `refine_pass` (below, which says what the arguments
-    are), each from the mesh the pass before kept, while a pass keeps its refined mesh. The result is
+    are; one more from `config.extra_pass_views` views on), each from the mesh the pass before kept,
+    while a pass keeps its refined mesh. The result is
     the last pass's that kept its refined mesh, its report's input measures (`*_before`, the
     re-rendering errors' input values, `input_carve`) the first pass's input's, and report.json's
     `passes` says what each pass kept (and why not), its worst view, re-rendering error and seconds;
@@ -1155,7 +1162,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     start_time = time.perf_counter()
     results = [refine_pass(mesh, hull, masks, cameras, config, view_coverage, capture, normals, view_names)]
     later = dataclasses.replace(config, input_carve=False)  # the kept mesh was cut to the hull where it could be
-    while len(results) < config.passes and results[-1].report["kept"] == "refined":
+    passes = config.passes + (0 < config.extra_pass_views <= len(masks))
+    while len(results) < passes and results[-1].report["kept"] == "refined":
         last = results[-1]  # measured by its pass: its silhouettes and re-rendering are the next pass's input's
         seed = {"input_casts": last.casts,
                 **({"input_rerendering": last.rerendering} if last.rerendering is not None else {})}

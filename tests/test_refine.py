@@ -363,17 +363,20 @@ def test_rounds_left_short_after_pushing_rims_out_run_again_without_the_reach(mo
     assert [r.get("outward_reach", True) for r in rounds] == calls
 
 
-@pytest.mark.parametrize("kept, worst, passes, returned", [
-    (["refined", "refined"], [0.981, 0.982], 2, 1),
-    (["refined", "input"], [0.981, 0.982], 2, 0),  # the second pass keeps its input: the first pass's mesh
-    (["input"], [0.981], 3, None),  # the first keeps its input: no more passes (the same input, the same pass)
-    (["refined", "refined", "input"], [0.981, 0.982, 0.983], 3, 1),
-    (["refined"], [0.981], 1, 0),
+@pytest.mark.parametrize("kept, worst, passes, returned, views", [
+    (["refined", "refined"], [0.981, 0.982], 2, 1, 10),
+    # from extra_pass_views (20) views on, one pass more
+    (["refined", "refined", "refined"], [0.981, 0.982, 0.983], 3, 2, 20),
+    (["refined", "refined", "input"], [0.981, 0.982, 0.983], 3, 1, 20),
+    (["refined", "input"], [0.981, 0.982], 2, 0, 10),  # the second pass keeps its input: the first pass's mesh
+    (["input"], [0.981], 3, None, 10),  # the first keeps its input: no more passes (the same input, the same pass)
+    (["refined", "refined", "input"], [0.981, 0.982, 0.983], 3, 1, 10),
+    (["refined"], [0.981], 1, 0, 10),
     # within the keep check's tolerance, but off the target the first pass met: not taken
-    (["refined", "refined"], [0.981, 0.9795], 2, 0),
-    (["refined", "refined"], [0.975, 0.974], 2, 1),  # short before too: the keep check decides
+    (["refined", "refined"], [0.981, 0.9795], 2, 0, 10),
+    (["refined", "refined"], [0.975, 0.974], 2, 1, 10),  # short before too: the keep check decides
 ])
-def test_each_pass_starts_from_the_mesh_the_pass_before_kept(monkeypatch, kept, worst, passes, returned):
+def test_each_pass_starts_from_the_mesh_the_pass_before_kept(monkeypatch, kept, worst, passes, returned, views):
     """`passes`, the bookkeeping alone over stand-in passes: each pass refines what the one before kept,
     the passes stop at one that keeps its input or takes the worst view below the target the pass before
     met, and the report gives the first input's measures beside the returned mesh's, and each pass's."""
@@ -398,7 +401,9 @@ def test_each_pass_starts_from_the_mesh_the_pass_before_kept(monkeypatch, kept, 
                             i)
 
     monkeypatch.setattr(refine, "refine_pass", one_pass)
-    result = refine_surface("input", None, None, None, RefineConfig(passes=passes))
+    config = RefineConfig(passes=passes - (views >= 20))  # passes: how many the stage may run
+    assert config.extra_pass_views == 20
+    result = refine_surface("input", None, np.zeros((views, 1, 1), bool), None, config)
     assert calls == [("input", True)] + [(f"mesh {i}", False) for i in range(len(calls) - 1)]
     stops = [i for i in range(len(kept)) if kept[i] == "input" or (i and worst[i] < 0.98 <= worst[i - 1])]
     assert len(calls) == min(passes, stops[0] + 1 if stops else passes)
