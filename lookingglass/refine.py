@@ -244,8 +244,8 @@ class RefineConfig:
                       range=(1, 5))
     extra_pass_views: int = setting(20, "View count from which the stage runs one pass more than passes (0: never). "
                                         "Twenty masks hold the silhouettes, and the third pass's new normals move "
-                                        "the concave parts on: val480v20 CD 2.82 -> 2.53 (0.47 -> 0.43 x the hull's; "
-                                        "the bracket 7.96 -> 5.66), CDN-mean 5.58 -> 5.34. At 10 views a third pass "
+                                        "the concave parts on: val480v20 CD 2.82 -> 2.54 (0.47 -> 0.43 x the hull's; "
+                                        "the bracket 7.96 -> 5.62), CDN-mean 5.58 -> 5.41. At 10 views a third pass "
                                         "would cost ~10 s against issue 25's 30 s for the stage (docs/history.md, "
                                         "sessions 80-81).", range=(0, None))
     silhouette_iou_target: float = setting(0.98, "The silhouette IoU below which a view pulls harder in the next "
