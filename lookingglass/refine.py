@@ -57,10 +57,10 @@ surface (capture frame, closed) and, in the hull-normalized frame (max |p| = 1):
    (`silhouette_rounds_without_reach`); each is returned only where it lands every view on the target.
 6. runs 0-5 again (`passes`, 2; one more from `extra_pass_views`, 20, views on) from the mesh it
    kept, while a pass keeps its refined mesh: the normal network, fed that better mesh, answers
-   with better normals, and the term follows them (the same pass with the first pass's answer reused hardly moves: the bracket's CD 7.23 -> 7.14,
-   against 5.58 with the net run again). A later pass skips the input carve, and is returned only
-   where its keep check keeps it and it does not take the worst view below the target the pass
-   before met (report.json: `passes`).
+   with better normals, and the term follows them (the same pass with the first pass's answer
+   reused hardly moves: the bracket's CD 7.23 -> 7.14, against 5.58 with the net run again). A
+   later pass skips the input carve, and is returned only where its keep check keeps it and it
+   does not take the worst view below the target the pass before met (report.json: `passes`).
 
 A view whose mask the visual hull covers poorly (`VisualHull.view_coverage`: a stray blob, a
 mask of something else, a cut-off object) disagrees with the other views; it is down-weighted
@@ -1153,11 +1153,11 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
                    capture=None, normals=None, view_names=None) -> RefineResult:
     """The refine stage: `config.passes` passes of `refine_pass` (below, which says what the arguments
     are; one more from `config.extra_pass_views` views on), each from the mesh the pass before kept,
-    while a pass keeps its refined mesh. The result is
-    the last pass's that kept its refined mesh, its report's input measures (`*_before`, the
-    re-rendering errors' input values, `input_carve`) the first pass's input's, and report.json's
-    `passes` says what each pass kept (and why not), its worst view, re-rendering error and seconds;
-    its other entries (the rounds, the normal term, the timings) are the returned pass's."""
+    while a pass keeps its refined mesh. The result is the last pass's that kept its refined mesh,
+    its report's input measures (`*_before`, the re-rendering errors' input values, `input_carve`)
+    the first pass's input's, and report.json's `passes` says what each pass kept (and why not), its
+    worst view, re-rendering error and seconds; its other entries (the rounds, the normal term, the
+    timings) are the returned pass's."""
     config = config or RefineConfig()
     start_time = time.perf_counter()
     results = [refine_pass(mesh, hull, masks, cameras, config, view_coverage, capture, normals, view_names)]
