@@ -6,8 +6,8 @@ Usage:
     .venv/bin/python scripts/experiments/genus_split.py DATA RUN.json
 DATA is the split eval-shapes read (DATA/test/scene_NNNNN/mesh.ply, the true meshes), RUN.json its `--json` output.
 Prints, for the genus-0 scenes and for the others, their count and the mean CD (x 1e4) of the hull, the PNet
-surface and the refined mesh, and the refined mesh's over the hull's. The genus is summed over the true mesh's
-connected bodies, (2 - Euler characteristic) / 2 each.
+surface and the refined mesh, and the refined mesh's over the hull's. The genus is the pipeline's own
+(`lookingglass.points.stage.genus`, summed over the true mesh's bodies).
 """
 import json
 import sys
@@ -16,16 +16,14 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-
-def genus(path: Path) -> int:
-    mesh = trimesh.load(path, process=True)
-    return sum((2 - body.euler_number) // 2 for body in mesh.split(only_watertight=False))
+from lookingglass.points.stage import genus
 
 
 def main() -> None:
     data, run = Path(sys.argv[1]), Path(sys.argv[2])
     scenes = sorted(json.loads(run.read_text())["scenes"], key=lambda s: s["index"])
-    shape_genus = {s["index"]: genus(data / "test" / f"scene_{s['index']:05d}" / "mesh.ply") for s in scenes}
+    shape_genus = {s["index"]: genus(trimesh.load(data / "test" / f"scene_{s['index']:05d}" / "mesh.ply"))
+                   for s in scenes}
     for name, holed in (("genus 0", False), ("genus > 0", True)):
         chosen = [s for s in scenes if (shape_genus[s["index"]] > 0) == holed]
         if not chosen:
