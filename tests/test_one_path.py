@@ -72,8 +72,12 @@ def test_reconstruct_and_eval_shapes_give_the_same_mesh(scene, tmp_path):
     dataset, root = scene
     config = PipelineConfig(device="cpu")
     config.surface.points, config.normals.latent = 4096, LatentOptConfig(0, 0)  # fast; the path is the same
-    # a quarter of the vertices, a quarter of the normal term's steps
-    config.refine = dataclasses.replace(config.refine, edge_length=0.03, normal_iterations=4)
+    # a quarter of the vertices, a quarter of the normal term's steps; at that edge some views stay below the
+    # IoU target, so one more round a pass (its report fields are compared below) but none of the fallback rounds
+    # (tests/test_refine.py runs those): each of the three runs takes ~25 s instead of ~65 s on the refine stage
+    config.refine = dataclasses.replace(config.refine, edge_length=0.03, normal_iterations=4, silhouette_retries=1,
+                                        silhouette_retry_backoff=False, silhouette_round_without_normals=False,
+                                        silhouette_rounds_without_reach=False)
     reconstruct(root / "scene", tmp_path / "out", config)
     gt = dataset.meshes(0)[0]
     # the surface stage's mesh, and the refine stage's (mesh.ply)
@@ -99,7 +103,7 @@ def test_reconstruct_and_eval_shapes_give_the_same_mesh(scene, tmp_path):
         # from call to call and the refine stage grew that: refined Metro 12.11 / 13.10 over two runs)
         assert record["refined"][metric] == pytest.approx(ours_refined[metric], rel=2e-2), metric
     assert record["refined"]["kept"] == refine["kept"]
-    assert record["refined"]["rounds"] == len(refine.get("silhouette_rounds", [None]))
+    assert record["refined"]["rounds"] == len(refine.get("silhouette_rounds", [None])) == 2
     assert record["refined"]["round"] == refine.get("silhouette_round", 0)
     # the passes (`RefineConfig.passes`, 2 by default) each kept the same mesh
     assert record["refined"]["passes"] == [p["kept"] for p in refine["passes"]]
