@@ -11,7 +11,7 @@ import trimesh
 from lookingglass.metrics import shape_metrics
 from lookingglass.weights import shipped_weights
 
-from cli_helpers import CLI, normal_errors, run
+from cli_helpers import CLI, normal_errors, run, run_here
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +92,7 @@ def test_reconstruct_refuses_non_empty_output(rendered_scene):
     out = rendered_scene / "busy"
     out.mkdir()
     (out / "keep.txt").write_text("mine")
-    proc = run("reconstruct", rendered_scene / "scene", "--out", out, "--quiet", ok=False)
+    proc = run_here("reconstruct", rendered_scene / "scene", "--out", out, "--quiet")
     assert proc.returncode == 2 and "not empty" in proc.stderr and "Traceback" not in proc.stderr
     assert (out / "keep.txt").read_text() == "mine"
 
@@ -102,7 +102,7 @@ def test_reconstruct_refuses_non_empty_output(rendered_scene):
     (("evaluate", "missing.ply", "missing2.ply"), "missing.ply"),
 ])
 def test_clear_errors(tmp_path, args, message):
-    proc = subprocess.run([*CLI, *args], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    proc = run_here(*args, cwd=tmp_path)
     assert proc.returncode == 2
     assert message in proc.stderr and "Traceback" not in proc.stderr
 
@@ -115,7 +115,7 @@ def test_empty_mask_is_reported_with_its_file(rendered_scene, tmp_path):
     from lookingglass.capture.images import write_mask
 
     write_mask(scene / "masks" / "03.png", np.zeros((90, 120), bool))
-    proc = run("reconstruct", scene, "--out", tmp_path / "o", ok=False)
+    proc = run_here("reconstruct", scene, "--out", tmp_path / "o")
     assert proc.returncode == 2 and "03.png" in proc.stderr and "Traceback" not in proc.stderr
 
 
@@ -211,7 +211,7 @@ def test_data_commands_refuse_bad_options_in_one_line(tmp_path, args, words):
     on a 10^9-scene index list, a long silent run, or (train-ior's 0 bins) useless weights, exit 0."""
     (tmp_path / "plain.txt").write_text("mine")
     args = [str(a).replace("{file}", str(tmp_path / "plain.txt")).replace("{dir}", str(tmp_path)) for a in args]
-    proc = run(*args, ok=False, timeout=120)
+    proc = run_here(*args)
     assert proc.returncode == 2 and words in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
     assert (tmp_path / "plain.txt").read_text() == "mine"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["plain.txt"]

@@ -11,6 +11,7 @@ from types import SimpleNamespace
 import pytest
 from typer.testing import CliRunner
 
+from cli_helpers import run_here
 from lookingglass import cli
 from lookingglass.normals.model import cpu_config as normal_cpu_config
 from lookingglass.presets import preset
@@ -75,7 +76,7 @@ def test_help_lists_config_fields_with_the_presets_defaults(command, flag, shown
                                                                                  "refraction from 1.0 to 3.0"),
 ])
 def test_out_of_range_flag_is_one_line_naming_the_field(tmp_path, args, said):
-    proc = subprocess.run([*CLI, *args], capture_output=True, text=True, timeout=120, cwd=tmp_path, env=WIDE)
+    proc = run_here(*args, cwd=tmp_path, env={"COLUMNS": "250"})
     assert proc.returncode == 2 and said in proc.stderr, proc.stderr
     assert proc.stderr.strip().count("\n") == 0 and "Traceback" not in proc.stderr
     assert not (tmp_path / "o").exists()

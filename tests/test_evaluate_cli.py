@@ -12,7 +12,7 @@ from lookingglass.normals.evaluate import traced_targets
 from lookingglass.normals.train import normal_targets
 from lookingglass.weights import shipped_weights
 
-from test_cli import run
+from cli_helpers import run, run_here
 
 pytestmark = pytest.mark.skipif(shipped_weights(10)[0] is None or shipped_weights(10, "points")[0] is None,
                                 reason="no 10-view weights ship in this build")
@@ -111,7 +111,7 @@ def test_eval_normals_prints_table_1_and_workers_match_one_process(two_scene_spl
 def test_surface_points_out_of_range_is_a_clear_error(two_scene_split):
     root = two_scene_split
     for command in (["eval-shapes", "--data", root], ["reconstruct", root, "--out", root / "o"]):
-        proc = run(*command, "--surface-points", 10, ok=False)
+        proc = run_here(*command, "--surface-points", 10)
         assert proc.returncode == 2 and "--surface-points must be in" in proc.stderr and "Traceback" not in proc.stderr
 
 
@@ -147,7 +147,7 @@ def test_json_output_never_overwrites_an_input(two_scene_split, tmp_path, comman
     for target, words in ((root / "test" / "scene_00000" / "mesh.ply", "would write into the input"),
                           (root, "is a folder"),
                           (weights, "would write into the input"), (tmp_path, "is a folder")):
-        proc = run(command, "--data", root, "--weights", spec, "--max-scenes", 1, "--json", target, ok=False)
+        proc = run_here(command, "--data", root, "--weights", spec, "--max-scenes", 1, "--json", target)
         assert proc.returncode == 2 and words in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
     assert _sha(root) == before and _sha(tmp_path) == before_w
 
@@ -160,10 +160,10 @@ def test_a_damaged_scene_is_an_error_not_a_shorter_table(two_scene_split, tmp_pa
     shutil.copytree(two_scene_split, data)
     (data / "test" / "scene_00001" / "maps.npz").unlink()
     for command in (["eval-normals", "--weights", f"wr+cv={shipped_weights(10)[0]}"], ["eval-shapes"]):
-        proc = run(*command, "--data", data, ok=False)
+        proc = run_here(*command, "--data", data)
         assert proc.returncode == 2 and "scene_00001" in proc.stderr and "unfinished or damaged" in proc.stderr, \
             proc.stderr
-    proc = run("eval-shapes", "--data", two_scene_split, "--max-scenes", -1, ok=False)
+    proc = run_here("eval-shapes", "--data", two_scene_split, "--max-scenes", -1)
     assert proc.returncode == 2 and "--max-scenes must be at least 0" in proc.stderr
 
 
@@ -174,15 +174,15 @@ def test_a_truncated_scene_file_is_named(two_scene_split, tmp_path):
     shutil.copytree(two_scene_split, data)
     maps = data / "test" / "scene_00000" / "maps.npz"
     maps.write_bytes(maps.read_bytes()[:300])
-    proc = run("eval-normals", "--weights", f"wr+cv={shipped_weights(10)[0]}", "--data", data, "--max-scenes", 1,
-               "--workers", 1, ok=False)
+    proc = run_here("eval-normals", "--weights", f"wr+cv={shipped_weights(10)[0]}", "--data", data, "--max-scenes",
+                    1, "--workers", 1)
     assert proc.returncode == 2 and "maps.npz: cannot read scene maps" in proc.stderr and "Traceback" not in proc.stderr
 
 
 def test_a_run_folder_inside_the_dataset_is_refused(two_scene_split):
     """A training run writes its config.json, checkpoints and weights: never into the dataset."""
     for out in (two_scene_split / "test", two_scene_split / "test" / "scene_00000", two_scene_split):
-        proc = run("train-normals", "--data", two_scene_split, "--out", out, ok=False)
+        proc = run_here("train-normals", "--data", two_scene_split, "--out", out)
         assert proc.returncode == 2 and "would write into the input" in proc.stderr, proc.stderr
 
 
