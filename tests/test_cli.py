@@ -142,7 +142,7 @@ def test_stop_after(rendered_scene, tmp_path):
     assert not (tmp_path / "o" / "normals").exists() and not (tmp_path / "o" / "points.ply").exists()
     page = (tmp_path / "o" / "report.html").read_text()  # the hull alone: one mesh, no network normals
     assert "visual hull normals" in page and "network normals" not in page and '"id":"visual_hull"' not in page
-    proc = run("reconstruct", rendered_scene / "scene", "--out", tmp_path / "p", "--stop-after", "mesh", ok=False)
+    proc = run_here("reconstruct", rendered_scene / "scene", "--out", tmp_path / "p", "--stop-after", "mesh")
     assert proc.returncode == 2 and "--stop-after" in proc.stderr and "Traceback" not in proc.stderr
 
 
@@ -178,7 +178,7 @@ def test_reconstruct_reruns_a_saved_config_and_refuses_bad_values(rendered_scene
     for bad, said in [(["--stop-after", "bogus"], "stop_after must be one of"), (["--views", "-1"], "views must be"),
                       (["--device", "tpu"], "device must be"),
                       (["--config", tmp_path / "a" / "mesh.ply"], "cannot read the config")]:
-        proc = run("reconstruct", root / "scene", "--out", tmp_path / "c", *bad, ok=False)
+        proc = run_here("reconstruct", root / "scene", "--out", tmp_path / "c", *bad)
         assert proc.returncode == 2 and said in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
         assert not (tmp_path / "c").exists()
 

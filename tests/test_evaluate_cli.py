@@ -75,7 +75,7 @@ def test_eval_shapes_scores_writes_json_resumes_and_workers_agree(two_scene_spli
         for metric, value in by_worker[row].items():
             assert redone[row][metric] == pytest.approx(value, rel=1e-3), (row, metric)
 
-    other = run(*args[:-7], "--strategies", "NE", "--json", out, ok=False)
+    other = run_here(*args[:-7], "--strategies", "NE", "--json", out)
     assert other.returncode == 2 and "other settings" in other.stderr and "Traceback" not in other.stderr
 
 
@@ -104,7 +104,7 @@ def test_eval_normals_prints_table_1_and_workers_match_one_process(two_scene_spl
     assert truth[:4] == [0.0] * 4 and 0 < truth[4] < tables[1]["vh"][4]
     for numbers in tables[1].values():  # N1 median/mean, N2 median/mean (degrees), render error
         assert len(numbers) == 5 and all(0 < v < 90 for v in numbers[:4]) and numbers[4] > 0
-    bad = run("eval-normals", "--data", two_scene_split, "--weights", "cv=x.safetensors", ok=False)
+    bad = run_here("eval-normals", "--data", two_scene_split, "--weights", "cv=x.safetensors")
     assert bad.returncode == 2 and "VARIANT=PATH" in bad.stderr
 
 
