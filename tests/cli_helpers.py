@@ -27,16 +27,18 @@ def run(*args, ok=True, timeout=600, **kwargs):
     return proc
 
 
-def run_here(*args, cwd=None, env=None) -> subprocess.CompletedProcess:
+def run_here(*args, cwd=None, env=None, timeout=120) -> subprocess.CompletedProcess:
     """`lookingglass ARGS` in this process, through `cli.main` as the console script runs it, for commands
     that refuse their input before any work: the same exit status and stderr as `run` in ~0.1 s, where
     a new process spends ~3.5 s importing (tests/test_bad_input.py keeps the real-process check). An
     exception main() lets through is written to stderr as the traceback a process would print, exit
-    status 1. cwd and env (os.environ's entries to set) hold only for the call; so do the interrupt
-    hook main() installs and torch's thread count."""
+    status 1, and so is a call that runs past `timeout` seconds (a hang, as `run`'s timeout guards). cwd and
+    env (os.environ's entries to set) hold only for the call; so do the interrupt hook main() installs and
+    torch's thread count."""
     import contextlib
     import io
     import os
+    import signal
     import traceback
 
     import torch
@@ -48,6 +50,12 @@ def run_here(*args, cwd=None, env=None) -> subprocess.CompletedProcess:
     sys.argv = ["lookingglass", *map(str, args)]
     os.environ.update(env or {})
     code = 0
+
+    def hung(signum, frame):
+        raise TimeoutError(f"lookingglass {' '.join(map(str, args))} ran past {timeout} s")
+
+    previous = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(timeout)
     try:
         if cwd is not None:
             os.chdir(cwd)
@@ -60,6 +68,8 @@ def run_here(*args, cwd=None, env=None) -> subprocess.CompletedProcess:
                 traceback.print_exc(file=err)
                 code = 1
     finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
         sys.argv, sys.unraisablehook = saved[0], saved[1]
         torch.set_num_threads(saved[2])
         os.chdir(saved[3])

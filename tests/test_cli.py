@@ -2,7 +2,6 @@
 
 import json
 import shutil
-import subprocess
 
 import numpy as np
 import pytest
@@ -11,7 +10,7 @@ import trimesh
 from lookingglass.metrics import shape_metrics
 from lookingglass.weights import shipped_weights
 
-from cli_helpers import CLI, normal_errors, run, run_here
+from cli_helpers import normal_errors, run, run_here
 
 
 @pytest.fixture(scope="module")
