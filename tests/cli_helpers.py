@@ -46,13 +46,15 @@ def run_here(*args, cwd=None, env=None, timeout=120) -> subprocess.CompletedProc
     from lookingglass import cli
 
     out, err = io.StringIO(), io.StringIO()
-    saved = (sys.argv, sys.unraisablehook, torch.get_num_threads(), os.getcwd(), dict(os.environ))
-    sys.argv = ["lookingglass", *map(str, args)]
+    argv = ["lookingglass", *map(str, args)]
+    old_argv, old_hook, old_threads, old_cwd, old_env = (sys.argv, sys.unraisablehook, torch.get_num_threads(),
+                                                         os.getcwd(), dict(os.environ))
+    sys.argv = argv
     os.environ.update(env or {})
     code = 0
 
     def hung(signum, frame):
-        raise TimeoutError(f"lookingglass {' '.join(map(str, args))} ran past {timeout} s")
+        raise TimeoutError(f"{' '.join(argv)} ran past {timeout} s")
 
     previous = signal.signal(signal.SIGALRM, hung)
     signal.alarm(timeout)
@@ -70,12 +72,12 @@ def run_here(*args, cwd=None, env=None, timeout=120) -> subprocess.CompletedProc
     finally:
         signal.alarm(0)
         signal.signal(signal.SIGALRM, previous)
-        sys.argv, sys.unraisablehook = saved[0], saved[1]
-        torch.set_num_threads(saved[2])
-        os.chdir(saved[3])
+        sys.argv, sys.unraisablehook = old_argv, old_hook
+        torch.set_num_threads(old_threads)
+        os.chdir(old_cwd)
         os.environ.clear()
-        os.environ.update(saved[4])
-    return subprocess.CompletedProcess(["lookingglass", *map(str, args)], code, out.getvalue(), err.getvalue())
+        os.environ.update(old_env)
+    return subprocess.CompletedProcess(argv, code, out.getvalue(), err.getvalue())
 
 
 def render_torus_scene(root: Path) -> Path:
