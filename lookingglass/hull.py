@@ -18,6 +18,11 @@ Method.
    (pixel footprint at the voxel's depth), and views are combined by a minimum (inside all cones).
 4. Marching cubes at level 0, largest component, LS3 Loop subdivision (MeshLab, as the paper's
    release does) for smooth normals, then a watertightness / orientation check.
+   A visual hull often has pieces apart from the object's: regions every mask allows but hidden
+   behind the object in every view, which no mask pixel needs; they are dropped quietly. Where
+   instead the dropped pieces cover mask pixels the largest one leaves uncovered, a part of the
+   object thinner than a voxel came apart (a rod or a handle: the demo's shape at 128 voxels), and
+   the box is carved again at twice the resolution (up to `max_resolution`).
 """
 
 from __future__ import annotations
@@ -54,6 +59,10 @@ class HullConfig:
         comparison: its marching-cubes surface keeps the voxel steps, see docs/benchmarks.md).
     padding: added on every side of the tight box found from the data, as a fraction of the box's
         longest side (0.02 = 2.6 voxels at 128: room for marching cubes to close the surface).
+    max_resolution, recarve_lost_share: where the pieces dropped besides the largest one cover more
+        than `recarve_lost_share` of some view's mask that the largest piece leaves uncovered (a
+        part of the object thinner than a voxel came apart), the box is carved again at twice
+        `resolution`, up to `max_resolution` (no second carve where it is not above `resolution`).
     coarse_resolution: voxels along the longest side for the final round of the box search (1/8 of
         the fine carve's voxels at 64 vs 128); earlier rounds use half of it.
     box_iterations: most coarse carve -> shrink rounds of the box search.
@@ -72,6 +81,11 @@ class HullConfig:
     """
 
     resolution: int = setting(128, "Voxels along the longest side of the hull box.", range=(16, 1024))
+    max_resolution: int = setting(256, "Finest second carve where a thin part of the object came apart at resolution "
+                                       "(recarve_lost_share; not above resolution: never).", range=(16, 1024))
+    recarve_lost_share: float = setting(0.002, "Share of a view's mask that only the pieces dropped besides the largest "
+                                               "cover, above which the hull is carved again finer (max_resolution).",
+                                        range=(0, 1))
     field: str = setting("distance", "distance (sub-voxel surface) or binary (the paper release's occupancy).")
     padding: float = setting(0.02, "Margin around the tight box, a fraction of its longest side.", range=(0, 1))
     coarse_resolution: int = setting(64, "Voxels along the longest side in the box search's last round.",
@@ -108,7 +122,8 @@ class VisualHull:
     view_coverage: (V,) fraction of each view's mask that the hull's projection covers (~1 when the
         masks and cameras agree).
     timings: seconds per sub-step ("masks", "box", "carve", "coverage", "marching_cubes",
-        "components", "subdivision", "finish") and "total".
+        "components", "recarve" where the hull came apart and was carved again finer,
+        "subdivision", "finish") and "total".
     """
 
     mesh: trimesh.Trimesh
@@ -610,14 +625,26 @@ def _marching_cubes(volume: np.ndarray, origin: np.ndarray, h: float) -> tuple[n
     return verts, orient_outward(verts, faces.astype(np.int64))
 
 
-def _largest_piece(verts: np.ndarray, faces: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
-    """The hull's largest piece (vertices (K, 3), faces (F, 3)); warns when pieces larger than a
-    voxel (h^3) are dropped (specks where the field grazes zero at one sample are dropped silently)."""
-    verts, faces, dropped = largest_component(verts, faces, min_volume=h ** 3)
+def _largest_piece(verts: np.ndarray, faces: np.ndarray, h: float, masks: np.ndarray,
+                   cameras: Cameras) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
+    """The hull's largest piece (vertices (K, 3), faces (F, 3)), the number of pieces larger than a
+    voxel (h^3) dropped besides it (specks where the field grazes zero at one sample are not
+    counted), and per view the share of the mask that the dropped pieces cover and the largest one
+    does not ((V,); zeros when none was dropped): ~0 for the regions every mask allows but no
+    mask pixel needs, the share of a part of the object that came apart otherwise."""
+    kept_verts, kept_faces, dropped = largest_component(verts, faces, min_volume=h ** 3)
+    lost = np.zeros(len(masks))
     if dropped:
-        warnings.warn(f"the visual hull has {dropped + 1} separate pieces; kept the largest, dropped "
-                      f"{dropped} (stray mask pixels or an inconsistent view?)", stacklevel=3)
-    return verts, faces
+        from .render.raycast import RayCaster
+
+        # the mask pixels' rays only, and of those the whole hull's hits against the largest piece
+        origins, directions = (r.numpy()[masks] for r in cameras.to(dtype=torch.float64, device="cpu").pixel_rays())
+        uncovered = RayCaster.of(verts, faces).hit_mask(origins, directions)
+        uncovered[uncovered] = ~RayCaster.of(kept_verts, kept_faces).hit_mask(origins[uncovered],
+                                                                              directions[uncovered])
+        view = np.broadcast_to(np.arange(len(masks))[:, None, None], masks.shape)[masks]
+        lost = np.bincount(view[uncovered], minlength=len(masks)) / np.maximum(1, masks.sum(axis=(1, 2)))
+    return kept_verts, kept_faces, dropped, lost
 
 
 def _smoothed(verts: np.ndarray, faces: np.ndarray, config: HullConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -649,8 +676,9 @@ def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig()
     match, a mask is empty, the hull is empty or unbounded, or the hull explains less than
     `config.min_view_coverage` of some view's mask (masks and cameras disagree). Warns
     (warnings.warn) when a mask touches its image border (the object is cut off there: the hull is
-    clipped to the image), when a view's coverage is below `config.warn_view_coverage`, and when
-    pieces of the hull disconnected from the largest one are dropped.
+    clipped to the image), when a view's coverage is below `config.warn_view_coverage`, when the
+    hull came apart at `config.resolution` and was carved again finer, and when pieces of the hull
+    that cover mask pixels the largest one does not are dropped (`recarve_lost_share`).
     """
     step = _StepClock(progress)
     masks = _checked_inputs(masks, cameras, config, view_names)
@@ -668,12 +696,36 @@ def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig()
 
         coverage = _checked_coverage(vol, origin, h, masks, cameras, config, view_names)
         volume = vol.cpu().numpy()
-    step("coverage", 0.65)
+        step("coverage", 0.65)
 
-    verts, faces = _marching_cubes(volume, origin, h)
-    step("marching_cubes", 0.75)
-    verts, faces = _largest_piece(verts, faces, h)
-    step("components", 0.8)
+        verts, faces = _marching_cubes(volume, origin, h)
+        step("marching_cubes", 0.7)
+        verts, faces, dropped, lost = _largest_piece(verts, faces, h, masks, cameras)
+        step("components", 0.75)
+        finer = min(2 * config.resolution, config.max_resolution)
+        if lost.max() > config.recarve_lost_share and finer > config.resolution:
+            # a part thinner than a voxel came apart: the same box (no new search) at a finer grid
+            fine = dataclasses.replace(config, resolution=finer)
+            fine_vol, fine_lo, fine_hi, fine_origin, fine_h, fine_shape = _carve_fine(carver, lo, hi, fine)
+            fine_coverage = _view_coverage(fine_vol, fine_origin, fine_h, masks, cameras)
+            fine_verts, fine_faces = _marching_cubes(fine_vol.cpu().numpy(), fine_origin, fine_h)
+            fine_verts, fine_faces, fine_dropped, fine_lost = _largest_piece(fine_verts, fine_faces, fine_h,
+                                                                             masks, cameras)
+            worst = int(np.argmax(lost))
+            warnings.warn(f"the visual hull came apart at {config.resolution} voxels (a part thinner than a voxel: "
+                          f"the pieces besides the largest cover {100 * lost[worst]:.1f}% of the mask of "
+                          f"{_views([worst], view_names)}); carved again at {finer} voxels, where they cover "
+                          f"{100 * fine_lost[worst]:.1f}%", stacklevel=2)
+            if fine_lost.max() < lost.max():
+                verts, faces, dropped, lost = fine_verts, fine_faces, fine_dropped, fine_lost
+                lo, hi, origin, h, shape, coverage = fine_lo, fine_hi, fine_origin, fine_h, fine_shape, fine_coverage
+            step("recarve", 0.8)
+    if lost.max() > config.recarve_lost_share:
+        worst = np.flatnonzero(lost > config.recarve_lost_share)
+        warnings.warn(f"the visual hull has {dropped + 1} separate pieces; kept the largest, dropped {dropped}, "
+                      f"which cover {', '.join(f'{100 * lost[v]:.1f}%' for v in worst)} of the mask of "
+                      f"{_views(worst, view_names)} that the largest leaves uncovered (parts thinner than a "
+                      f"voxel, stray mask pixels or an inconsistent view?)", stacklevel=2)
     verts, faces = _smoothed(verts, faces, config)
     step("subdivision", 0.95)
 
