@@ -59,7 +59,8 @@ surface (capture frame, closed) and, in the hull-normalized frame (max |p| = 1):
    kept, while a pass keeps its refined mesh: the normal network, fed that better mesh, answers
    with better normals, and the term follows them (the same pass with the first pass's answer
    reused hardly moves: the bracket's CD 7.23 -> 7.14, against 5.58 with the net run again). A
-   later pass skips the input carve, and is returned only where its keep check keeps it and it
+   later pass skips the input carve, runs one round where the pass before ended with a view short
+   of the target (`short_pass_rounds`), and is returned only where its keep check keeps it and it
    does not take the worst view below the target the pass before met (report.json: `passes`).
 
 A view whose mask the visual hull covers poorly (`VisualHull.view_coverage`: a stray blob, a
@@ -242,6 +243,16 @@ class RefineConfig:
                              "more steps against the same targets do not (report.json: passes). 1 -> 2 on val480: "
                              "CD 4.21 -> 3.68, CDN-mean 7.63 -> 7.13 (docs/history.md, session 79).",
                       range=(1, 5))
+    short_pass_rounds: bool = setting(False, "Whether a later pass reruns the silhouette rounds (silhouette_retries and "
+                                              "the rounds after them) where the pass before ended with a view of full "
+                                              "weight below silhouette_iou_target. False: one round, pulling each view "
+                                              "as hard as the round the pass before returned (its keep check and the "
+                                              "pass check still apply). Six 20-view 128x96 test scenes (10, 15, "
+                                              "32, 41 left short, 0 and 57 whose later passes ran retries; 57 "
+                                              "unchanged): CD 17.83 -> 17.21, "
+                                              "CDN-mean 49.46 -> 48.46 (sums), every view >= 0.98 on 2 of them both "
+                                              "times (32 gained, 0 lost), the stage on four of them 613 -> 408 s "
+                                              "(docs/history.md, session 85).")
     extra_pass_views: int = setting(20, "View count from which the stage runs one pass more than passes (0: never). "
                                         "Twenty masks hold the silhouettes, and the third pass's new normals move "
                                         "the concave parts on: val480v20 CD 2.82 -> 2.54 (0.47 -> 0.43 x the hull's; "
@@ -1167,9 +1178,19 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         last = results[-1]  # measured by its pass: its silhouettes and re-rendering are the next pass's input's
         seed = {"input_casts": last.casts,
                 **({"input_rerendering": last.rerendering} if last.rerendering is not None else {})}
-        result = refine_pass(last.mesh, hull, masks, cameras, later, view_coverage, capture, normals, view_names,
+        before = _worst_trusted(last)
+        rules = later
+        if before < config.silhouette_iou_target and not config.short_pass_rounds:
+            # the rounds of the pass before fell short of the target: one round, pulling each view as hard as the
+            # round that pass returned did (its penalty factors), instead of climbing to them again
+            rules = dataclasses.replace(later, silhouette_retries=0, silhouette_round_without_normals=False,
+                                        silhouette_rounds_without_reach=False)
+            rounds = last.report.get("silhouette_rounds")
+            if rounds:
+                seed["boost"] = np.asarray(rounds[last.report["silhouette_round"]]["boost"], float)
+        result = refine_pass(last.mesh, hull, masks, cameras, rules, view_coverage, capture, normals, view_names,
                              warn=False, seed=seed)
-        before, after = (_worst_trusted(r) for r in (last, result))
+        after = _worst_trusted(result)
         if result.report["kept"] == "refined" and after < config.silhouette_iou_target <= before:
             # the keep check lets the worst view fall by keep_tolerance; a pass must not take the
             # mesh off the target the pass before met
@@ -1190,7 +1211,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     if "input_carve" in first.report:
         report["input_carve"] = first.report["input_carve"]
     report["passes"] = [{"kept": r.report["kept"], "worst_iou": round(_worst_trusted(r), 4),
-                         "seconds": r.report["seconds"],
+                         "rounds": len(r.report.get("silhouette_rounds", [None])), "seconds": r.report["seconds"],
                          **{k: r.report[k] for k in ("kept_why", "rerender_error") if k in r.report}}
                         for r in results]
     report["seconds"] = round(time.perf_counter() - start_time, 2)
@@ -1223,7 +1244,8 @@ def refine_pass(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, came
     `silhouette_rounds_without_reach`). Warns (warnings.warn; where `warn`: the first pass) for every
     down-weighted view, named by `view_names` (V,) when given (its mask file). seed: what a pass
     before measured of `mesh` (its silhouettes "input_casts" and, with photos, its "input_rerendering"),
-    reused instead of measured again."""
+    reused instead of measured again, and optionally "boost" (V,), the views' silhouette weight factors
+    the first round pulls with (default 1)."""
     config = config or RefineConfig()
     start_time = time.perf_counter()
     masks = np.asarray(masks, bool)
@@ -1241,6 +1263,7 @@ def refine_pass(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, came
     # what every round starts from (filled by the first; the input carve's casts and renders; `seed`: the
     # input's casts and re-rendering where a pass before made them)
     start: dict = dict(seed or {})
+    first_boost = np.asarray(start.pop("boost", np.ones(V)), float)  # the views' factors the first round pulls with
     input_report: dict = {}
     if config.input_carve:
         mesh, input_report = carve_input(mesh, hull, masks, cameras, weights, config, capture, start)
@@ -1269,7 +1292,7 @@ def refine_pass(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, came
         # A penalty method on the views: a view the kept mesh still misses (IoU below the target) pulls
         # harder in the next round, rerun from the input; the round whose kept mesh matches its worst
         # view best is returned (a refined one first, below).
-        boost = np.ones(V)
+        boost = first_boost.copy()
         # A round that returns a refined mesh beats one that returns the input: each round's keep check
         # weighed its refined mesh against that same input, within its tolerances (keep_tolerance), and
         # a round must not undo that for less (20-view test scene 30: the input's worst view 0.9787

@@ -238,7 +238,7 @@ def test_rounds_that_do_not_help_end_early(scene):
     assert result.report["silhouette_round"] == 0
 
 
-def stand_in_rounds(monkeypatch, worst, kept, config):
+def stand_in_rounds(monkeypatch, worst, kept, config, seed=None):
     """`refine_pass` (one pass of the stage) over stand-in rounds whose kept meshes' worst views are `worst` (view 0 the
     worst in every round, the other three at 0.99), each the refined mesh or, where `kept` says so,
     the input: its result, and each round's view factors (boost)."""
@@ -255,8 +255,17 @@ def stand_in_rounds(monkeypatch, worst, kept, config):
     monkeypatch.setattr(refine, "cast_iou", lambda casts, masks: np.array([worst[casts], 0.99, 0.99, 0.99]))
     # no input to cut: the stand-in rounds take none
     result = refine_pass(None, SimpleNamespace(view_coverage=np.ones(V)), np.zeros((V, 2, 2), bool), None,
-                            dataclasses.replace(config, input_carve=False))
+                            dataclasses.replace(config, input_carve=False), seed=seed)
     return result, calls
+
+
+def test_a_pass_seeded_with_a_pull_starts_its_rounds_from_it(monkeypatch):
+    """A later pass after one that fell short starts from the views' factors that pass ended with
+    (`seed["boost"]`), and its next round multiplies the still short view's on from there."""
+    result, calls = stand_in_rounds(monkeypatch, [0.95, 0.985], None, RefineConfig(),
+                                    seed={"boost": np.array([3.0, 1.0, 1.0, 1.0])})
+    assert [c.tolist() for c in calls] == [[3.0, 1.0, 1.0, 1.0], [9.0, 1.0, 1.0, 1.0]]
+    assert result.report["silhouette_rounds"][0]["boost"] == [3.0, 1.0, 1.0, 1.0]
 
 
 @pytest.mark.parametrize("worst, rounds, returned, ended, kept", [
@@ -378,8 +387,10 @@ def test_rounds_left_short_after_pushing_rims_out_run_again_without_the_reach(mo
 ])
 def test_each_pass_starts_from_the_mesh_the_pass_before_kept(monkeypatch, kept, worst, passes, returned, views):
     """`passes`, the bookkeeping alone over stand-in passes: each pass refines what the one before kept,
-    the passes stop at one that keeps its input or takes the worst view below the target the pass before
-    met, and the report gives the first input's measures beside the returned mesh's, and each pass's."""
+    in one silhouette round at the pull of the round the pass before returned where that pass fell short of
+    the target, the passes stop at one that
+    keeps its input or takes the worst view below the target the pass before met, and the report gives
+    the first input's measures beside the returned mesh's, and each pass's."""
     import lookingglass.refine as refine
     from lookingglass.refine import RefineResult
 
@@ -392,7 +403,14 @@ def test_each_pass_starts_from_the_mesh_the_pass_before_kept(monkeypatch, kept, 
         # a later pass starts from what the pass before kept and measured: not cut to the hull again
         assert config.input_carve == (i == 0) and (seed is None) == (i == 0)
         assert seed is None or seed["input_casts"] == i - 1
-        report = {"kept": kept[i], "terms_before": {"smooth": i}, "silhouette_iou_before": [i / 10, 1.0],
+        # after a pass whose rounds fell short of the target, one round (short_pass_rounds)
+        short = i > 0 and worst[i - 1] < 0.98
+        assert (config.silhouette_retries, config.silhouette_round_without_normals,
+                config.silhouette_rounds_without_reach) == ((0, False, False) if short else (2, True, True))
+        # pulling each view as hard as the round the pass before returned
+        assert (seed or {}).get("boost", np.ones(2)).tolist() == ([3.0, 1.0] if short else [1.0, 1.0])
+        report = {"kept": kept[i], "silhouette_rounds": [{"boost": [1.0, 1.0]}, {"boost": [3.0, 1.0]}],
+                  "silhouette_round": 1, "terms_before": {"smooth": i}, "silhouette_iou_before": [i / 10, 1.0],
                   "silhouette_iou_mean": [i / 10, 0.99], "silhouette_iou_after": [worst[i], 0.0],
                   "rerender_error": [0.2 - i / 100, 0.19 - i / 100], "seconds": 1.0,
                   "rerender_error_views": {"input": [i], "refined": [i + 0.5]}}
@@ -413,6 +431,7 @@ def test_each_pass_starts_from_the_mesh_the_pass_before_kept(monkeypatch, kept, 
     # every report says what each pass kept, a single pass's too
     assert [p["kept"] for p in report["passes"]] == [k if i not in stops else "input"
                                                      for i, k in enumerate(kept[:len(calls)])]
+    assert [p["rounds"] for p in report["passes"]] == [2] * len(calls)
     assert report["silhouette_iou_before"] == [0.0, 1.0] and report["terms_before"] == {"smooth": 0}
     shown = returned or 0  # the pass whose mesh is returned, or the first where none keeps its refined mesh
     assert report["rerender_error"] == [0.2, 0.19 - shown / 100]

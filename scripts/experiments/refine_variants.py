@@ -54,7 +54,9 @@ for i in map(int, sys.argv[2].split(",")):
               round(m["cdn_mean"], 2), round(min(result.report["silhouette_iou_after"]), 3),
               "term", term.get("trusted_share"), term.get("kept"),
               "rerender", result.report.get("rerender_error"), "iou_mean", result.report["silhouette_iou_mean"],
-              result.report.get("kept_why", ""), flush=True)
+              result.report.get("kept_why", ""), "seconds", result.report["seconds"],
+              "passes", [(p["kept"], p["worst_iou"], p["rounds"], p["seconds"]) for p in result.report.get("passes", [])],
+              flush=True)
         for r in result.report.get("silhouette_rounds", []):
             print("   round", r["kept"], r["worst_iou"], "carved", r.get("carved"), r["seconds"], flush=True)
         print("   carve", result.report.get("hull_carve"), flush=True)
