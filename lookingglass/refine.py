@@ -247,12 +247,10 @@ class RefineConfig:
                                               "the rounds after them) where the pass before ended with a view of full "
                                               "weight below silhouette_iou_target. False: one round, pulling each view "
                                               "as hard as the round the pass before returned (its keep check and the "
-                                              "pass check still apply). Six 20-view 128x96 test scenes (10, 15, "
-                                              "32, 41 left short, 0 and 57 whose later passes ran retries; 57 "
-                                              "unchanged): CD 17.83 -> 17.21, "
-                                              "CDN-mean 49.46 -> 48.46 (sums), every view >= 0.98 on 2 of them both "
-                                              "times (32 gained, 0 lost), the stage on four of them 613 -> 408 s "
-                                              "(docs/history.md, session 85).")
+                                              "pass check still apply). The 20-view 128x96 test split: 3 of 60 "
+                                              "scenes changed, CD 6.05 -> 6.04, CDN-mean 8.09 -> 8.07, every view "
+                                              ">= 0.98 on 56 of 60 both times (32 gained, 0 lost), the stage 110 -> "
+                                              "102 s a scene (docs/history.md, session 85).")
     extra_pass_views: int = setting(20, "View count from which the stage runs one pass more than passes (0: never). "
                                         "Twenty masks hold the silhouettes, and the third pass's new normals move "
                                         "the concave parts on: val480v20 CD 2.82 -> 2.54 (0.47 -> 0.43 x the hull's; "
