@@ -601,7 +601,7 @@ def _checked_coverage(vol: torch.Tensor, origin: np.ndarray, h: float, masks: np
         warnings.warn(
             f"the visual hull covers only {', '.join(f'{100 * coverage[v]:.0f}%' for v in low)} "
             f"of the mask of {_views(low, names)}: some masks or camera poses are off",
-            stacklevel=3)
+            stacklevel=4)  # called from _carve_surface
     return coverage
 
 
@@ -645,6 +645,43 @@ def _largest_piece(verts: np.ndarray, faces: np.ndarray, h: float, masks: np.nda
         view = np.broadcast_to(np.arange(len(masks))[:, None, None], masks.shape)[masks]
         lost = np.bincount(view[uncovered], minlength=len(masks)) / np.maximum(1, masks.sum(axis=(1, 2)))
     return kept_verts, kept_faces, dropped, lost
+
+
+@dataclass
+class _Carved:
+    """One fine carve's box [lo, hi], grid (origin, voxel size h, shape), the views' mask coverage,
+    and its surface's largest piece with what `_largest_piece` says of the pieces dropped."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    origin: np.ndarray
+    h: float
+    shape: tuple
+    coverage: np.ndarray
+    verts: np.ndarray
+    faces: np.ndarray
+    dropped: int
+    lost: np.ndarray
+
+
+def _carve_surface(carver: _Carver, lo: np.ndarray, hi: np.ndarray, config: HullConfig, masks: np.ndarray,
+                   cameras: Cameras, view_names=None, step: "_StepClock | None" = None) -> _Carved:
+    """The fine carve over [lo, hi] at `config.resolution`, its coverage, marching cubes and largest
+    piece. With `step` (the first carve) the coverage is checked (`_checked_coverage`: errors and
+    warnings) and each sub-step timed; without (the finer second carve of the same box) it is only
+    measured."""
+    checked = step is not None
+    step = step or (lambda name, fraction: None)
+    vol, lo, hi, origin, h, shape = _carve_fine(carver, lo, hi, config)
+    step("carve", 0.6)
+    coverage = (_checked_coverage(vol, origin, h, masks, cameras, config, view_names) if checked
+                else _view_coverage(vol, origin, h, masks, cameras))
+    step("coverage", 0.65)
+    verts, faces = _marching_cubes(vol.cpu().numpy(), origin, h)
+    step("marching_cubes", 0.7)
+    verts, faces, dropped, lost = _largest_piece(verts, faces, h, masks, cameras)
+    step("components", 0.75)
+    return _Carved(lo, hi, origin, h, shape, coverage, verts, faces, dropped, lost)
 
 
 def _smoothed(verts: np.ndarray, faces: np.ndarray, config: HullConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -691,35 +728,21 @@ def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig()
         pad = config.padding * float((hi - lo).max())
         step("box", 0.1)
 
-        vol, lo, hi, origin, h, shape = _carve_fine(carver, lo - pad, hi + pad, config)
-        step("carve", 0.6)
-
-        coverage = _checked_coverage(vol, origin, h, masks, cameras, config, view_names)
-        volume = vol.cpu().numpy()
-        step("coverage", 0.65)
-
-        verts, faces = _marching_cubes(volume, origin, h)
-        step("marching_cubes", 0.7)
-        verts, faces, dropped, lost = _largest_piece(verts, faces, h, masks, cameras)
-        step("components", 0.75)
+        carved = _carve_surface(carver, lo - pad, hi + pad, config, masks, cameras, view_names, step)
         finer = min(2 * config.resolution, config.max_resolution)
-        if lost.max() > config.recarve_lost_share and finer > config.resolution:
+        if carved.lost.max() > config.recarve_lost_share and finer > config.resolution:
             # a part thinner than a voxel came apart: the same box (no new search) at a finer grid
-            fine = dataclasses.replace(config, resolution=finer)
-            fine_vol, fine_lo, fine_hi, fine_origin, fine_h, fine_shape = _carve_fine(carver, lo, hi, fine)
-            fine_coverage = _view_coverage(fine_vol, fine_origin, fine_h, masks, cameras)
-            fine_verts, fine_faces = _marching_cubes(fine_vol.cpu().numpy(), fine_origin, fine_h)
-            fine_verts, fine_faces, fine_dropped, fine_lost = _largest_piece(fine_verts, fine_faces, fine_h,
-                                                                             masks, cameras)
-            worst = int(np.argmax(lost))
+            fine = _carve_surface(carver, carved.lo, carved.hi, dataclasses.replace(config, resolution=finer),
+                                  masks, cameras)
+            worst = int(np.argmax(carved.lost))
             warnings.warn(f"the visual hull came apart at {config.resolution} voxels (a part thinner than a voxel: "
-                          f"the pieces besides the largest cover {100 * lost[worst]:.1f}% of the mask of "
+                          f"the pieces besides the largest cover {100 * carved.lost[worst]:.1f}% of the mask of "
                           f"{_views([worst], view_names)}); carved again at {finer} voxels, where they cover "
-                          f"{100 * fine_lost[worst]:.1f}%", stacklevel=2)
-            if fine_lost.max() < lost.max():
-                verts, faces, dropped, lost = fine_verts, fine_faces, fine_dropped, fine_lost
-                lo, hi, origin, h, shape, coverage = fine_lo, fine_hi, fine_origin, fine_h, fine_shape, fine_coverage
+                          f"{100 * fine.lost[worst]:.1f}%", stacklevel=2)
+            if fine.lost.max() < carved.lost.max():
+                carved = fine
             step("recarve", 0.8)
+    verts, faces, dropped, lost = carved.verts, carved.faces, carved.dropped, carved.lost
     if lost.max() > config.recarve_lost_share:
         worst = np.flatnonzero(lost > config.recarve_lost_share)
         warnings.warn(f"the visual hull has {dropped + 1} separate pieces; kept the largest, dropped {dropped}, "
@@ -739,5 +762,6 @@ def carve_visual_hull(masks, cameras: Cameras, config: HullConfig = HullConfig()
                                 " (an internal error: please report it, with the masks and cameras)")
     center, scale = hull_normalization(np.asarray(mesh.vertices))
     step("finish", 1.0)
-    return VisualHull(mesh=mesh, center=center, scale=scale, bbox=np.stack([lo, hi]),
-                      voxel_size=h, grid_shape=shape, view_coverage=coverage, timings=step.with_total())
+    return VisualHull(mesh=mesh, center=center, scale=scale, bbox=np.stack([carved.lo, carved.hi]),
+                      voxel_size=carved.h, grid_shape=carved.shape, view_coverage=carved.coverage,
+                      timings=step.with_total())
