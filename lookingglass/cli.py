@@ -68,15 +68,19 @@ def reconstruct(
     """Reconstruct the object's surface; writes mesh.ply, visual_hull.ply, points.ply, normals/ and report.json."""
     import dataclasses
 
+    from .capture.folder import scene_file_in
     from .config import PipelineConfig
-    from .pipeline import reconstruct as run
     from .presets import preset as make_preset
-    from .progress import Reporter
 
     if preset is not None and config is not None:
         raise LookingGlassError("give --preset or --config, not both")
     base = PipelineConfig.from_json(config) if config is not None else make_preset(preset or DEFAULT_PRESET).pipeline
     resolved = apply_config_flags(ctx, base)
+    scene_file_in(scene_dir)
+    # torch, trimesh and the networks (~4 s) only once the options and the scene folder have passed
+    from .pipeline import reconstruct as run
+    from .progress import Reporter
+
     reporter = Reporter(quiet=quiet)
     report = run(scene_dir, out, dataclasses.replace(resolved), force=force, reporter=reporter)
     reporter.info(f"wrote {out / 'mesh.ply'} ({report['total_seconds']:.1f} s)")
@@ -534,10 +538,10 @@ def eval_normals(
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Print the paper's Table 1 (N1/N2 angle errors, render error) on the test split as markdown."""
+    from .config import LatentOptConfig
     from .data.torch_dataset import TransparentSceneDataset
     from .fileio import write_json
     from .normals.evaluate import evaluate_normals, markdown_table
-    from .normals.latent import LatentOptConfig
     from .progress import Reporter
 
     device = _device(device)  # checked before any work
@@ -593,12 +597,11 @@ def eval_shapes(
     """Print the paper's Table 2/3 (CD, CDN-mean, CDN-med, Metro) for the hull and the surfaces made
     from normal predictions, as markdown; with --refine (the default), also the refined mesh and
     every mesh's agreement with the photos."""
+    from .config import STRATEGIES, LatentOptConfig
     from .configio import config_to_dict
     from .data.torch_dataset import TransparentSceneDataset
     from .fileio import write_json
-    from .normals.latent import LatentOptConfig
     from .points.evaluate import evaluate_shapes, markdown_table
-    from .points.features import STRATEGIES
     from .presets import preset as make_preset
     from .progress import Reporter
     from .weights import shipped_weights

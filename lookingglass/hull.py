@@ -39,74 +39,14 @@ import torch
 import trimesh
 from scipy import ndimage
 
-from .configio import check_ranges, setting
-from .errors import ConfigError, LookingGlassError
+from .config import HullConfig  # noqa: F401 (re-exported; its home is lookingglass.config)
+from .errors import LookingGlassError
 from .meshes import largest_component, orient_outward, require_closed_and_oriented, taubin_smooth
 from .meshes import subdivide_ls3_loop as _ls3_loop  # the name hull's tests import
 from .threads import torch_threads
 from .physics.camera import Cameras
 
 ProgressFn = Callable[[str, float], None]
-
-
-@dataclass
-class HullConfig:
-    """Settings of `carve_visual_hull`. Plain fields: `dataclasses.asdict` is JSON-serializable.
-
-    resolution: voxels along the longest side of the (padded) carving box; 128 as in the paper.
-    field: "distance" carves the views' signed distances to their silhouettes (sub-voxel surface);
-        "binary" carves plain inside/outside occupancy, as the paper's release did (kept for
-        comparison: its marching-cubes surface keeps the voxel steps, see docs/benchmarks.md).
-    padding: added on every side of the tight box found from the data, as a fraction of the box's
-        longest side (0.02 = 2.6 voxels at 128: room for marching cubes to close the surface).
-    max_resolution, recarve_lost_share: where the pieces dropped besides the largest one cover more
-        than `recarve_lost_share` of some view's mask that the largest piece leaves uncovered (a
-        part of the object thinner than a voxel came apart), the box is carved again at twice
-        `resolution`, up to `max_resolution` (no second carve where it is not above `resolution`).
-    coarse_resolution: voxels along the longest side for the final round of the box search (1/8 of
-        the fine carve's voxels at 64 vs 128); earlier rounds use half of it.
-    box_iterations: most coarse carve -> shrink rounds of the box search.
-    subdivision_iterations, subdivision_threshold: MeshLab "LS3 Loop" subdivision, edges longer
-        than `subdivision_threshold` (fraction of the bounding-box diagonal; DESIGN.md: 1%) are
-        split, `subdivision_iterations` times. 0 iterations = the raw marching-cubes surface.
-    smoothing_iterations: Taubin (lambda/mu, volume preserving) smoothing steps applied to the
-        marching-cubes mesh before subdivision; 0 = none.
-    min_view_coverage, warn_view_coverage: the hull's projection must cover at least this fraction
-        of every view's mask (error below min, warning below warn): a consistency check of masks
-        and cameras (consistent synthetic captures give >= 0.99).
-    chunk_voxels: voxels carved per batch; bounds the memory to ~ 40 bytes x chunk_voxels.
-    num_threads: torch intra-op threads while carving: > 0 exactly that many, 0 = half the cores
-        (see `torch_threads`), < 0 = torch's current setting.
-    device: torch device for the carving ("cpu", "cuda", ...).
-    """
-
-    resolution: int = setting(128, "Voxels along the longest side of the hull box.", range=(16, 1024))
-    max_resolution: int = setting(256, "Finest second carve where a thin part of the object came apart at resolution "
-                                       "(recarve_lost_share; not above resolution: never).", range=(16, 1024))
-    recarve_lost_share: float = setting(0.002, "Share of a view's mask that only the pieces dropped besides the largest "
-                                               "cover, above which the hull is carved again finer (max_resolution).",
-                                        range=(0, 1))
-    field: str = setting("distance", "distance (sub-voxel surface) or binary (the paper release's occupancy).")
-    padding: float = setting(0.02, "Margin around the tight box, a fraction of its longest side.", range=(0, 1))
-    coarse_resolution: int = setting(64, "Voxels along the longest side in the box search's last round.",
-                                     range=(8, 1024))
-    box_iterations: int = setting(8, "Most coarse carve -> shrink rounds of the box search.", range=(0, None))
-    subdivision_iterations: int = setting(5, "LS3 Loop subdivision rounds (0: the raw marching-cubes surface).",
-                                          range=(0, None))
-    subdivision_threshold: float = setting(0.01, "Edges longer than this fraction of the box diagonal are split.",
-                                           range=(0, 1))
-    smoothing_iterations: int = setting(0, "Taubin smoothing steps before subdivision.", range=(0, None))
-    min_view_coverage: float = setting(0.5, "Least fraction of every mask the hull must cover (else an error).",
-                                       range=(0, 1))
-    warn_view_coverage: float = setting(0.9, "Below this fraction of a mask covered: a warning.", range=(0, 1))
-    chunk_voxels: int = setting(1 << 20, "Voxels carved per batch (memory ~ 40 bytes each).", range=(1, None))
-    num_threads: int = setting(0, "Torch threads while carving (0: half the cores; < 0: torch's setting).")
-    device: str = "cpu"
-
-    def __post_init__(self) -> None:
-        check_ranges(self)
-        if self.field not in ("distance", "binary"):
-            raise ConfigError(f'field must be "distance" or "binary", got {self.field!r}')
 
 
 @dataclass

@@ -12,14 +12,14 @@ The shipped weights were trained from `cpu` with per-run overrides (--init, --ep
 --lr-halve-epochs, --max-scenes: weights/*.json "provenance", recipes/*.sh), so there is no
 separate preset for them.
 
-This module imports the config classes only when a preset is built (they pull in torch), so the
-command line can list the names cheaply.
+A preset builds each config when it is first read, importing only that config's modules: the
+pipeline's configs (lookingglass.config) import no torch, the trainers' and the dataset's do, so
+`reconstruct` reads and checks its options without them.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from .errors import ConfigError
 
@@ -34,20 +34,36 @@ if TYPE_CHECKING:
 DEFAULT_PRESET = "cpu"
 
 
-@dataclass(frozen=True)
 class Preset:
-    """Every config of one named preset. pipeline: `reconstruct`; dataset: `generate` (and the
-    image size the networks are trained at); normal_training, point_training: the trainers';
-    capture: the real-capture commands' (`sfm`, `envmap-from-ball`, `capture`), the same in every
-    preset; ior_training: the IoR net's trainer (`train-ior`), the same in every preset."""
+    """Every config of one named preset, each built from its factory when first read. pipeline:
+    `reconstruct`; dataset: `generate` (and the image size the networks are trained at);
+    normal_training, point_training: the trainers'; capture: the real-capture commands' (`sfm`,
+    `envmap-from-ball`, `capture`), the same in every preset; ior_training: the IoR net's trainer
+    (`train-ior`), the same in every preset."""
 
+    CONFIGS = ("pipeline", "dataset", "normal_training", "point_training", "capture", "ior_training")
     name: str
     pipeline: PipelineConfig
     dataset: DatasetConfig
     normal_training: TrainConfig
     point_training: PointTrainConfig
-    capture: CaptureConfig = field(default_factory=lambda: _capture_config())
-    ior_training: IorTrainConfig = field(default_factory=lambda: _ior_training_config())
+    capture: CaptureConfig
+    ior_training: IorTrainConfig
+
+    def __init__(self, name: str, **factories: Callable[[], Any]):
+        factories = {"capture": _capture_config, "ior_training": _ior_training_config, **factories}
+        if set(factories) != set(self.CONFIGS):
+            raise TypeError(f"a preset's factories are {self.CONFIGS}, got {tuple(factories)}")
+        self.name = name
+        self._factories = factories
+
+    def __getattr__(self, config: str) -> Any:
+        # only called for what is not built yet (a built config is an instance attribute)
+        factories = self.__dict__.get("_factories", {})
+        if config not in factories:
+            raise AttributeError(f"{type(self).__name__} has no config {config!r}")
+        built = self.__dict__[config] = factories[config]()
+        return built
 
 
 def _capture_config() -> CaptureConfig:
@@ -77,22 +93,31 @@ def _cpu() -> Preset:
     2-core machine with another training job on it, 1 thread, 128x96 images, 10 views: feature
     preparation ~4 s a scene (cost volume and normal net ~2.6 s of it), then ~0.33 s a step: for
     600 scenes ~40 min of features once and ~3.5 min an epoch."""
-    from .config import PipelineConfig
-    from .data.dataset import DatasetConfig
-    from .normals import model as normal_model
-    from .normals.train import TrainConfig
-    from .points import model as point_model
-    from .points.train import PointTrainConfig
+    def pipeline() -> PipelineConfig:
+        from .config import PipelineConfig
 
-    return Preset(
-        name="cpu",
-        pipeline=PipelineConfig(),
-        dataset=DatasetConfig(),
-        normal_training=TrainConfig(net=normal_model.cpu_config(), epochs=8, lr=4e-4, lr_halve_epochs=3,
-                                    views_per_step=4),
-        point_training=PointTrainConfig(net=point_model.cpu_config(), epochs=6, lr=3e-4, lr_halve_epochs=2,
-                                        checkpoint_every=100),
-    )
+        return PipelineConfig()
+
+    def dataset() -> DatasetConfig:
+        from .data.dataset import DatasetConfig
+
+        return DatasetConfig()
+
+    def normal_training() -> TrainConfig:
+        from .normals import model as normal_model
+        from .normals.train import TrainConfig
+
+        return TrainConfig(net=normal_model.cpu_config(), epochs=8, lr=4e-4, lr_halve_epochs=3, views_per_step=4)
+
+    def point_training() -> PointTrainConfig:
+        from .points import model as point_model
+        from .points.train import PointTrainConfig
+
+        return PointTrainConfig(net=point_model.cpu_config(), epochs=6, lr=3e-4, lr_halve_epochs=2,
+                                checkpoint_every=100)
+
+    return Preset("cpu", pipeline=pipeline, dataset=dataset, normal_training=normal_training,
+                  point_training=point_training)
 
 
 def _paper() -> Preset:
@@ -101,23 +126,30 @@ def _paper() -> Preset:
     resolution), E 512 x 256, 9 spp (about the samples of the paper's 480 x 360 4-spp renders
     area-downsampled to 256 x 192). Networks: the paper's; training: 10 epochs at 1e-4, halved
     every 2 (the paper's schedule)."""
-    from .config import PipelineConfig
-    from .data.dataset import DatasetConfig
-    from .normals import model as normal_model
-    from .normals.latent import LatentOptConfig
-    from .normals.stage import NormalStageConfig
-    from .normals.train import TrainConfig
-    from .points import model as point_model
-    from .points.train import PointTrainConfig
+    def pipeline() -> PipelineConfig:
+        from .config import LatentOptConfig, NormalStageConfig, PipelineConfig
 
-    return Preset(
-        name="paper",
-        pipeline=PipelineConfig(normals=NormalStageConfig(latent=LatentOptConfig(iterations_n2=500,
-                                                                                 iterations_both=500))),
-        dataset=DatasetConfig(preset="paper", width=256, height=192, envmap_height=256, samples_per_axis=3),
-        normal_training=TrainConfig(net=normal_model.paper_config()),
-        point_training=PointTrainConfig(net=point_model.paper_config()),
-    )
+        return PipelineConfig(normals=NormalStageConfig(latent=LatentOptConfig(iterations_n2=500, iterations_both=500)))
+
+    def dataset() -> DatasetConfig:
+        from .data.dataset import DatasetConfig
+
+        return DatasetConfig(preset="paper", width=256, height=192, envmap_height=256, samples_per_axis=3)
+
+    def normal_training() -> TrainConfig:
+        from .normals import model as normal_model
+        from .normals.train import TrainConfig
+
+        return TrainConfig(net=normal_model.paper_config())
+
+    def point_training() -> PointTrainConfig:
+        from .points import model as point_model
+        from .points.train import PointTrainConfig
+
+        return PointTrainConfig(net=point_model.paper_config())
+
+    return Preset("paper", pipeline=pipeline, dataset=dataset, normal_training=normal_training,
+                  point_training=point_training)
 
 
 PRESETS: dict[str, Callable[[], Preset]] = {"cpu": _cpu, "paper": _paper}

@@ -2,6 +2,8 @@
 
 import json
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -104,6 +106,26 @@ def test_clear_errors(tmp_path, args, message):
     proc = run_here(*args, cwd=tmp_path)
     assert proc.returncode == 2
     assert message in proc.stderr and "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize("args, message", [
+    (("no_such_scene", "--out", "o"), "no_such_scene: scene folder not found"),
+    (("folder", "--out", "o"), "no scene.json in the scene folder"),
+    (("folder", "--out", "o", "--hull.resolution", "8"), "--hull-resolution=8: resolution must be in [16, 1024]"),
+    (("folder", "--out", "o", "--preset", "gpu"), "unknown preset 'gpu'"),
+])
+def test_reconstruct_refuses_a_wrong_path_or_flag_before_loading_the_pipeline(tmp_path, args, message):
+    """The options are read and checked, and the scene folder found, before torch, trimesh and the
+    networks are imported (~4 s of a refusal before session 86): a real process, which then reports
+    what it had imported."""
+    (tmp_path / "folder").mkdir()
+    probe = ("import sys\nfrom lookingglass.cli import main\nsys.argv = ['lookingglass', 'reconstruct', *sys.argv[1:]]\n"
+             "try:\n    main()\nexcept SystemExit as exit:\n    code = exit.code\n"
+             "print(code, sorted(m for m in ('torch', 'trimesh', 'scipy', 'cv2') if m in sys.modules))")
+    proc = subprocess.run([sys.executable, "-c", probe, *args], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=120)
+    assert proc.stdout.split("\n")[-2] == "2 []", (proc.stdout, proc.stderr)
+    assert message in " ".join(proc.stderr.split()) and "Traceback" not in proc.stderr, proc.stderr
 
 
 def test_empty_mask_is_reported_with_its_file(rendered_scene, tmp_path):

@@ -82,10 +82,13 @@ def test_out_of_range_flag_is_one_line_naming_the_field(tmp_path, args, said):
     assert not (tmp_path / "o").exists()
 
 
-def test_given_values_land_over_the_chosen_preset_and_defaults_do_not(monkeypatch):
+def test_given_values_land_over_the_chosen_preset_and_defaults_do_not(monkeypatch, tmp_path):
     """--preset paper keeps paper's 500 + 500 latent steps where no flag changes them; an alias, a
     nested field and a bool reach the config; options not given keep the preset's values."""
     seen = {}
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "scene").mkdir()
+    (tmp_path / "scene" / "scene.json").write_text("{}")  # the command checks the folder before the pipeline
     monkeypatch.setattr("lookingglass.pipeline.reconstruct",
                         lambda scene, out, config, **kw: seen.setdefault("config", config) and {"total_seconds": 0})
     result = CliRunner().invoke(cli.app, ["reconstruct", "scene", "--out", "o", "--preset", "paper", "--quiet",

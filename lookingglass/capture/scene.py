@@ -34,10 +34,10 @@ import torch
 from ..errors import LookingGlassError, LookingGlassWarning
 from ..fileio import write_json
 from ..physics.camera import Cameras
+from ..physics.constants import IOR_GLASS as DEFAULT_IOR, check_ior
+from .folder import SCENE_FILE, scene_file_in  # noqa: F401 (SCENE_FILE re-exported)
 from .images import read_envmap, read_image, read_mask, write_image, write_mask
 
-SCENE_FILE = "scene.json"
-from ..physics.constants import IOR_GLASS as DEFAULT_IOR, check_ior
 IMAGE_ENCODINGS = ("srgb", "linear")
 
 _TOP_KEYS = ("ior", "envmap", "envmap_scale", "image_encoding", "views")
@@ -349,13 +349,7 @@ def load_capture(folder: str | os.PathLike) -> Capture:
     Files are only read, never modified.
     """
     root = Path(folder)
-    if not root.exists():
-        raise LookingGlassError("scene folder not found", root)
-    if not root.is_dir():
-        raise LookingGlassError("not a folder (expected a scene folder holding scene.json)", root)
-    scene_path = root / SCENE_FILE
-    if not scene_path.exists():
-        raise LookingGlassError(f"no {SCENE_FILE} in the scene folder", root)
+    scene_path = scene_file_in(root)
     spec, notes = SceneSpec.from_json(scene_path)
     for message in notes:  # now, so that they accompany any error below
         warnings.warn(LookingGlassWarning(message), stacklevel=2)

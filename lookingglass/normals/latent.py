@@ -3,35 +3,16 @@ so the rendering layer reproduces the photos better; the decoder keeps normals p
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from ..configio import check_ranges, setting
+from ..config import LatentOptConfig  # noqa: F401 (re-exported; its home is lookingglass.config)
 from ..physics.camera import Cameras
 from ..physics.environment import EnvironmentMap
 from .model import NormalNet
 from ..physics.optics import IOR_GLASS
 from .render_layer import comparable, render_layer
-
-
-@dataclass
-class LatentOptConfig:
-    """iterations_n2: steps on N2 with N1 held by an identity loss of weight `identity_weight`;
-    iterations_both: steps on both. The paper uses 500 + more on a GPU. On this CPU each step costs
-    ~0.9 s for 10 views at 128x96, and the sweep in docs/history.md (benchmarks/latent_sweep.py)
-    found the normals' angle errors flat in the steps (10.51 -> 10.48 deg N1 median from 0 to
-    40 + 40) while the render error falls slowly (7.8 -> 6.8e-2): 10 + 10 keeps the stage near
-    the 20 s budget."""
-
-    iterations_n2: int = setting(10, "Latent-optimization steps on N2 (N1 held).", range=(0, None))
-    iterations_both: int = setting(10, "Latent-optimization steps on N1 and N2.", range=(0, None))
-    lr: float = setting(5e-3, "Adam step size of the latent optimization.", range=(0, None))
-    identity_weight: float = setting(100.0, "Weight of the loss holding N1 during the N2 steps.", range=(0, None))
-
-    def __post_init__(self) -> None:
-        check_ranges(self)
 
 
 def masked_render_loss(envmap: EnvironmentMap, n1: Tensor, n2: Tensor, cameras: Cameras, image: Tensor,

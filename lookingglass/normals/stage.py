@@ -11,7 +11,7 @@ OUT/normals/view_XX.png (input | hull normals | predicted normals | re-rendered 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -20,29 +20,12 @@ import torch
 import trimesh
 
 from ..capture.images import write_image
-from ..configio import setting
-from ..errors import ConfigError
+from ..config import LatentOptConfig, NormalStageConfig  # noqa: F401 (re-exported; its home is lookingglass.config)
 from ..fileio import write_atomic
 from ..viz import normal_map_rgb, tonemap
 from ..weights import NormalWeights
 from .inputs import NormalInputs
-from .latent import LatentOptConfig
 from .predict import NormalMaps, predict_normals, render_normals
-
-
-@dataclass
-class NormalStageConfig:
-    """weights: a weights.safetensors path, or "" for the shipped weights of the view count
-    nearest `views` (0: the capture's view count). latent: the post-processing (iterations 0 = off)."""
-
-    weights: str = setting("", "Normal-network weights (\"\": the shipped ones).")
-    views: int = setting(0, "Use the shipped weights trained for this view count (5, 10, 20; the nearest that "
-                            "ships); 0: the capture's view count.")
-    latent: LatentOptConfig = field(default_factory=LatentOptConfig)
-
-    def __post_init__(self) -> None:
-        if self.views < 0:
-            raise ConfigError(f"views must be 0 (the capture's count) or a view count, got {self.views}")
 
 
 @dataclass

@@ -57,6 +57,7 @@ import torch.nn.functional as F
 import trimesh
 from torch import Tensor
 
+from ..config import STRATEGIES  # noqa: F401 (re-exported; its home is lookingglass.config)
 from ..physics.camera import Cameras
 from ..render.raycast import RayCaster
 
@@ -76,7 +77,6 @@ __all__ = [
     "select_rendering_error",
 ]
 
-STRATEGIES = ("AV", "NE", "RE")
 
 # Column layout of map_features(...)["features"] (N, NUM_FEATURES), world frame:
 # point xyz | hull normal | mapped N1 | rendering error | TIR | view cosine (the paper's 12) |

@@ -21,67 +21,18 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from ..configio import check_ranges, setting
-from ..errors import ConfigError, LookingGlassError
+from ..config import SurfaceConfig  # noqa: F401 (re-exported; its home is lookingglass.config)
+from ..errors import LookingGlassError
 from ..hull import VisualHull
 from ..metrics import sample_surface
 from ..normals.predict import NormalMaps
 from ..physics.camera import Cameras
 from ..surface import close_narrow_tunnels, poisson_surface
-from .features import STRATEGIES, map_features, sample_hull_points
+from .features import map_features, sample_hull_points
 from .model import PointNet
 
 if TYPE_CHECKING:
     from ..weights import PointWeights
-
-
-@dataclass
-class SurfaceConfig:
-    """points: hull samples for Poisson (with PNet, rounded up to whole clouds of its trained
-    size); strategy: AV, NE or RE (feature mapping); depth: Poisson octree depth (8: 1/128 of the
-    unit sphere's box, about the hull's 128^3 voxel); point_weight, samples_per_node: screened
-    Poisson's; smoothing_neighbours: PNet's offsets and normals are averaged over this many
-    nearest points (0 or 1: not at all), see `smooth_over_neighbours`; seed: point sampling;
-    point_weights: PNet weights ("" = the shipped ones, if any); close_radius: tunnels narrower than
-    about twice this many Poisson voxels are filled in a surface with handles (0: never; see
-    `surface_from_normals`).
-
-    Why 40 000 points: where two parts of the hull face each other across a slit narrower than
-    the point spacing (a handle close to the body), Poisson fuses them and the slit's walls vanish.
-    On the 10-view test split's worst case (a genus-2 shape, test scene 25), Chamfer distance with
-    ground-truth normals went 48.0 (20 000 points) -> 20.7 (40 000) against the hull's 15.9 (depth
-    9 or 10 changed nothing: the spacing limits); on other scenes the change was within +-0.1.
-    A point weight of 10 got scene 25 to 17.9 but, on PNet's points, opened spurious tunnels
-    (a torus came out genus 3), so it stays at MeshLab's 4. Lower weights smooth PNet's surface
-    (CDN-mean -1.6 deg at weight 1 on a 16-scene validation split, `generate --split test --seed 1`)
-    but fuse slits (test scene 33: CD 24 -> 41 at weight 2, 69 at 1). Neighbours 8/16/32/64 gave the
-    same CD within 0.3% on that split and CDN-mean 15.3/14.9/14.6/14.4 deg; 64 starts to average
-    across slits (scene 33: CD 24.5 at 32, 25.3 at 64). 32 on the 60-scene test split with the
-    shipped PNet, against 16: CD 11.07 vs 11.08, CDN-mean 15.77 vs 16.08, Metro 46.8 vs 47.1.
-
-    Why close_radius 2 (balls of 2 voxels: tunnels under ~0.034 wide in the hull's frame): on the
-    5-view test split (first 46 scenes, the shipped PNet, every surface closed) radii 2 / 3 / 4 gave
-    CD 18.48 / 18.97 / 19.31 against 18.31 unclosed, and excess handles over the ground truth 59 /
-    11 / 4 against 112; from 3 on, real handles narrowed by PNet's inward move close too (scene
-    25, genus 2: CD 17.6 -> 26.5 at 3, 39.1 at 4)."""
-
-    points: int = setting(40000, "Points on the hull for the surface (more keeps narrower slits and takes longer).",
-                          range=(1, None), cli_range=(1000, 1_000_000))
-    strategy: str = setting("RE", "Feature mapping: AV, NE or RE.")
-    depth: int = setting(8, "Poisson octree depth.", range=(1, 16))
-    point_weight: float = setting(4.0, "Screened Poisson's point weight.", range=(0, None))
-    samples_per_node: float = setting(1.5, "Screened Poisson's samples per node.", range=(0, None))
-    smoothing_neighbours: int = setting(32, "PNet's offsets and normals are averaged over this many nearest points "
-                                            "(0 or 1: not at all).", range=(0, None))
-    close_radius: int = setting(2, "Fill tunnels narrower than about twice this many Poisson voxels (0: never).",
-                                range=(0, None))
-    seed: int = setting(0, "Point-sampling seed.")
-    point_weights: str = setting("", "PNet weights (\"\": the shipped ones, if any).")
-
-    def __post_init__(self) -> None:
-        if self.strategy.upper() not in STRATEGIES:
-            raise ConfigError(f"strategy must be one of {STRATEGIES}, got {self.strategy!r}")
-        check_ranges(self)
 
 
 @dataclass

@@ -19,14 +19,10 @@ import torch
 import trimesh
 
 from ..capture.images import exposure_factor, resize_images, resize_masks
+from ..config import RERENDER_SAMPLES, RERENDER_WIDTH  # noqa: F401 (re-exported)
 from ..physics.environment import EnvironmentMap
 from .tracer import RenderConfig, render_views
 
-RERENDER_WIDTH = 240  # half of a 480x360 capture: the error is stable to ~1e-3 and a 10-view render takes seconds
-# One jittered sample per pixel, the same (seeded) for every mesh compared: 0.36x the time of 2 x 2, and on
-# the validation set the refine stage kept the same meshes (docs/history.md, session 44); the error reads
-# ~0.015 higher (the photos are smoother than one sample a pixel).
-RERENDER_SAMPLES = 1
 
 
 @dataclass

@@ -1,0 +1,26 @@
+"""The scene folder's own checks, made before any file in it is read (DESIGN.md's scene folder
+format). Nothing here imports torch or an image library, so the command line refuses a wrong path
+before it loads the pipeline."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from ..errors import LookingGlassError
+
+SCENE_FILE = "scene.json"
+
+
+def scene_file_in(folder: str | os.PathLike) -> Path:
+    """FOLDER/scene.json. Raises LookingGlassError naming `folder` where it is missing, is not a
+    folder, or holds no scene.json."""
+    root = Path(folder)
+    if not root.exists():
+        raise LookingGlassError("scene folder not found", root)
+    if not root.is_dir():
+        raise LookingGlassError("not a folder (expected a scene folder holding scene.json)", root)
+    scene_path = root / SCENE_FILE
+    if not scene_path.exists():
+        raise LookingGlassError(f"no {SCENE_FILE} in the scene folder", root)
+    return scene_path
