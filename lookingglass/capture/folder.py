@@ -8,14 +8,16 @@ import os
 from pathlib import Path
 
 from ..errors import LookingGlassError
+from ..fileio import resolved_path
 
 SCENE_FILE = "scene.json"
 
 
 def scene_file_in(folder: str | os.PathLike) -> Path:
-    """FOLDER/scene.json. Raises LookingGlassError naming `folder` where it is missing, is not a
-    folder, or holds no scene.json."""
+    """FOLDER/scene.json. Raises LookingGlassError naming `folder` where it is a loop of symbolic
+    links, is missing, is not a folder, or holds no scene.json."""
     root = Path(folder)
+    resolved_path(root)  # a loop of links "exists" as nothing: say what it is
     if not root.exists():
         raise LookingGlassError("scene folder not found", root)
     if not root.is_dir():
