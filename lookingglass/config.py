@@ -29,7 +29,7 @@ STRATEGIES = ("AV", "NE", "RE")  # the feature mappings of the surface stage (lo
 
 @dataclass
 class HullConfig:
-    """Settings of `carve_visual_hull`. Plain fields: `dataclasses.asdict` is JSON-serializable.
+    """Settings of `hull.carve_visual_hull`. Plain fields: `dataclasses.asdict` is JSON-serializable.
 
     resolution: voxels along the longest side of the (padded) carving box; 128 as in the paper.
     field: "distance" carves the views' signed distances to their silhouettes (sub-voxel surface);
@@ -54,7 +54,7 @@ class HullConfig:
         and cameras (consistent synthetic captures give >= 0.99).
     chunk_voxels: voxels carved per batch; bounds the memory to ~ 40 bytes x chunk_voxels.
     num_threads: torch intra-op threads while carving: > 0 exactly that many, 0 = half the cores
-        (see `torch_threads`), < 0 = torch's current setting.
+        (see `threads.torch_threads`), < 0 = torch's current setting.
     device: torch device for the carving ("cpu", "cuda", ...).
     """
 
@@ -126,10 +126,10 @@ class SurfaceConfig:
     size); strategy: AV, NE or RE (feature mapping); depth: Poisson octree depth (8: 1/128 of the
     unit sphere's box, about the hull's 128^3 voxel); point_weight, samples_per_node: screened
     Poisson's; smoothing_neighbours: PNet's offsets and normals are averaged over this many
-    nearest points (0 or 1: not at all), see `smooth_over_neighbours`; seed: point sampling;
+    nearest points (0 or 1: not at all), see `points.stage.smooth_over_neighbours`; seed: point sampling;
     point_weights: PNet weights ("" = the shipped ones, if any); close_radius: tunnels narrower than
     about twice this many Poisson voxels are filled in a surface with handles (0: never; see
-    `surface_from_normals`).
+    `points.stage.surface_from_normals`).
 
     Why 40 000 points: where two parts of the hull face each other across a slit narrower than
     the point spacing (a handle close to the body), Poisson fuses them and the slit's walls vanish.
@@ -171,7 +171,7 @@ class SurfaceConfig:
 
 @dataclass
 class RefineConfig:
-    """Settings of `refine_surface` (the `refine` stage). Lengths are in the hull-normalized frame
+    """Settings of `refine.refine_surface` (the `refine` stage). Lengths are in the hull-normalized frame
     (max |p| = 1), image distances in the capture's pixels. The weights are relative: each term is
     a sum of squared lengths (silhouette residuals, Laplacians, steps) over the vertices."""
 
