@@ -3,7 +3,6 @@ so the rendering layer reproduces the photos better; the decoder keeps normals p
 
 from __future__ import annotations
 
-
 import torch
 from torch import Tensor
 
