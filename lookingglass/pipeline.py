@@ -288,7 +288,6 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
     # the device is resolved once, for every stage (the hull carves where the networks run), and
     # saved resolved in report.json's config
     config = config.resolved()
-    device = config.device
     if resolved_path(scene_dir) == resolved_path(out_dir):
         raise LookingGlassError("output folder must differ from the scene folder", out_dir)
     given = _given_weights(config)
