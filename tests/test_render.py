@@ -326,3 +326,17 @@ def test_config_validation():
     inverted.invert()
     with pytest.raises(ValueError, match="inward"):
         trace_two_bounce(inverted, _views(8, 6))
+
+
+def test_ray_caster_reuses_a_face_set_only_when_it_is_the_same():
+    """Scenes built from the same vertices and different faces of one shape (the kept face tuples
+    must not stand in for another set), against the exact answer: a ray along -z through (0.2, 0.2)
+    hits the triangle in z = 0 at t = 1 and misses the one in z = 0.5 that lies beside it."""
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 2, 0.5], [3, 2, 0.5], [2, 3, 0.5]], float)
+    origin, direction = np.array([[0.2, 0.2, 1.0]]), np.array([[0.0, 0.0, -1.0]])
+    for faces, hit in [([[0, 1, 2]], True), ([[3, 4, 5]], False), ([[0, 1, 2]], True), ([[2, 1, 0]], True)]:
+        hits = RayCaster.of(vertices, np.array(faces)).intersect(origin, direction)
+        assert bool(hits.hit[0]) == hit
+        if hit:
+            assert hits.t[0] == pytest.approx(1.0, abs=1e-6)
+            assert hits.face_normal[0] @ [0, 0, 1] == pytest.approx(1.0 if faces == [[0, 1, 2]] else -1.0)
