@@ -68,7 +68,7 @@ def reconstruct(
     """Reconstruct the object's surface; writes mesh.ply, visual_hull.ply, points.ply, normals/ and report.json."""
     import dataclasses
 
-    from .capture.folder import scene_file_in
+    from .capture.folder import check_output_folder, scene_file_in
     from .config import PipelineConfig
     from .presets import preset as make_preset
 
@@ -77,7 +77,8 @@ def reconstruct(
     base = PipelineConfig.from_json(config) if config is not None else make_preset(preset or DEFAULT_PRESET).pipeline
     resolved = apply_config_flags(ctx, base)
     scene_file_in(scene_dir)
-    # torch, trimesh and the networks (~4 s) only once the options and the scene folder have passed
+    check_output_folder(scene_dir, out, force)
+    # torch, trimesh and the networks (~4 s) only once the options and the folders have passed
     from .pipeline import reconstruct as run
     from .progress import Reporter
 

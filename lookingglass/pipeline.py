@@ -31,10 +31,11 @@ import torch
 import trimesh
 
 from . import __version__
+from .capture.folder import check_output_folder
 from .capture.scene import SCENE_FILE, Capture, SceneSpec, load_capture
 from .config import STAGES, PipelineConfig, config_to_dict, parse_ior
 from .errors import LookingGlassError, LookingGlassWarning
-from .fileio import resolved_path, staged_dir, write_atomic, write_json
+from .fileio import staged_dir, write_atomic, write_json
 from .hull import VisualHull, carve_visual_hull
 from .ior import MIN_CONTRAST, RELIABLE_MIN_WIDTH, assumed_ior, estimate_ior
 from .ior_net import LEARNED_RELIABLE_STD, learned_ior, load_ior_net
@@ -288,8 +289,7 @@ def reconstruct(scene_dir: Path, out_dir: Path, config: PipelineConfig | None = 
     # the device is resolved once, for every stage (the hull carves where the networks run), and
     # saved resolved in report.json's config
     config = config.resolved()
-    if resolved_path(scene_dir) == resolved_path(out_dir):
-        raise LookingGlassError("output folder must differ from the scene folder", out_dir)
+    check_output_folder(scene_dir, out_dir, force)
     given = _given_weights(config)
     inputs = [scene_dir, *_scene_files(scene_dir), *(p for p in (config.normals.weights, config.surface.point_weights)
                                                      if p)]

@@ -8,7 +8,7 @@ import os
 from pathlib import Path
 
 from ..errors import LookingGlassError
-from ..fileio import resolved_path
+from ..fileio import check_output_dir, resolved_path
 
 SCENE_FILE = "scene.json"
 
@@ -26,3 +26,12 @@ def scene_file_in(folder: str | os.PathLike) -> Path:
     if not scene_path.exists():
         raise LookingGlassError(f"no {SCENE_FILE} in the scene folder", root)
     return scene_path
+
+
+def check_output_folder(scene_dir: str | os.PathLike, out: str | os.PathLike, force: bool) -> None:
+    """Refuse an output folder a reconstruction of `scene_dir` must not write (LookingGlassError naming
+    it): the scene folder itself, one that holds it, and what `fileio.check_output_dir` refuses (not
+    empty without `force`, not writable). The files scene.json names are checked once it is read."""
+    if resolved_path(scene_dir) == resolved_path(out):
+        raise LookingGlassError("output folder must differ from the scene folder", out)
+    check_output_dir(out, force, inputs=[scene_dir])
