@@ -109,17 +109,26 @@ def test_clear_errors(tmp_path, args, message):
 
 
 @pytest.mark.parametrize("args, message", [
-    (("no_such_scene", "--out", "o"), "no_such_scene: scene folder not found"),
-    (("folder", "--out", "o"), "no scene.json in the scene folder"),
-    (("folder", "--out", "o", "--hull.resolution", "8"), "--hull-resolution=8: resolution must be in [16, 1024]"),
-    (("folder", "--out", "o", "--preset", "gpu"), "unknown preset 'gpu'"),
+    (("reconstruct", "no_such_scene", "--out", "o"), "no_such_scene: scene folder not found"),
+    (("reconstruct", "folder", "--out", "o"), "no scene.json in the scene folder"),
+    (("reconstruct", "folder", "--out", "o", "--hull.resolution", "8"),
+     "--hull-resolution=8: resolution must be in [16, 1024]"),
+    (("reconstruct", "folder", "--out", "o", "--preset", "gpu"), "unknown preset 'gpu'"),
+    (("reconstruct", "scene", "--out", "full"), "full: output folder is not empty (use --force to replace it)"),
+    (("reconstruct", "scene", "--out", "scene", "--force"), "scene: output folder must differ from the scene folder"),
+    (("reconstruct", "scene", "--out", ".", "--force"), "output folder would replace the input scene"),
+    (("generate", "--out", "o", "--scenes", "2", "--shape.min-faces", "-1"), "shape.min_faces must be at least 0"),
 ])
-def test_reconstruct_refuses_a_wrong_path_or_flag_before_loading_the_pipeline(tmp_path, args, message):
-    """The options are read and checked, and the scene folder found, before torch, trimesh and the
-    networks are imported (~4 s of a refusal before session 86): a real process, which then reports
-    what it had imported."""
+def test_refusals_come_before_the_pipeline_loads(tmp_path, args, message):
+    """`reconstruct`'s options are read and checked, the scene folder found and the output folder
+    checked, and `generate`'s options checked, before torch, trimesh and the networks are imported
+    (~4 s of a refusal before session 86): a real process, which then reports what it had imported."""
     (tmp_path / "folder").mkdir()
-    probe = ("import sys\nfrom lookingglass.cli import main\nsys.argv = ['lookingglass', 'reconstruct', *sys.argv[1:]]\n"
+    (tmp_path / "scene").mkdir()
+    (tmp_path / "scene" / "scene.json").write_text("{}")  # found; read only once the pipeline has loaded
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "earlier.ply").write_text("")
+    probe = ("import sys\nfrom lookingglass.cli import main\nsys.argv = ['lookingglass', *sys.argv[1:]]\n"
              "try:\n    main()\nexcept SystemExit as exit:\n    code = exit.code\n"
              "print(code, sorted(m for m in ('torch', 'trimesh', 'scipy', 'cv2') if m in sys.modules))")
     proc = subprocess.run([sys.executable, "-c", probe, *args], cwd=tmp_path, capture_output=True, text=True,

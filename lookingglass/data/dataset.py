@@ -64,11 +64,11 @@ import numpy as np
 
 from ..configio import check_ranges, setting
 from ..errors import ConfigError, LookingGlassError
-from ..hull import HullConfig
+from ..config import HullConfig
 from ..physics.constants import (IOR_AIR, IOR_GLASS, IOR_MAX, IOR_MIN, PAPER_RENDER_FOV_X_DEG as PAPER_FOV_X_DEG,
                                  check_ior_range)
 from ..parallel import map_in_processes, worker_count
-from .shapes import ShapeConfig
+from .shape_config import ShapeConfig
 
 if TYPE_CHECKING:
     import trimesh
