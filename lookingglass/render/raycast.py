@@ -36,9 +36,10 @@ class Hits:
 # indexing: a numpy scalar made for every coordinate, and a row view for every face. Python objects
 # that index cheaply give Embree the same float32 triangles in ~1/4 of the time (17 800 vertices,
 # 35 000 faces: 64 -> 15 ms; the refine stage builds ~200 scenes of one face set). The faces' tuples
-# take ~9 ms to make, so the last few face sets' are kept.
+# take ~9 ms to make and ~160 bytes a face, so the last few face sets' are kept, up to a bound.
 _FACE_TUPLES: list[tuple[np.ndarray, np.ndarray]] = []
-_FACE_TUPLES_KEPT = 4
+_FACE_TUPLES_KEPT = 3
+_FACE_TUPLES_MAX_FACES = 400_000  # kept in all (~60 MB)
 
 
 def _face_tuples(faces: np.ndarray) -> np.ndarray:
@@ -50,8 +51,10 @@ def _face_tuples(faces: np.ndarray) -> np.ndarray:
             return tuples
     tuples = np.empty(len(faces), dtype=object)
     tuples[:] = list(zip(*faces.T.tolist()))
-    _FACE_TUPLES.insert(0, (faces.copy(), tuples))
-    del _FACE_TUPLES[_FACE_TUPLES_KEPT:]
+    if len(faces) <= _FACE_TUPLES_MAX_FACES:
+        _FACE_TUPLES.insert(0, (faces.copy(), tuples))
+        while len(_FACE_TUPLES) > _FACE_TUPLES_KEPT or sum(len(f) for f, _ in _FACE_TUPLES) > _FACE_TUPLES_MAX_FACES:
+            _FACE_TUPLES.pop()
     return tuples
 
 
