@@ -5,7 +5,8 @@
 
 Measures
 1. Embree throughput: RayCaster.intersect_raw on the 10-view camera rays (coherent) and on the
-   renderer's own secondary rays (incoherent), all threads.
+   renderer's own secondary rays (incoherent), all threads; and a scene's build, RayCaster's against
+   embreex handed numpy arrays.
 2. render_views on the paper's 10-view rig at 480 x 360 (two-bounce maps included), default
    RenderConfig, for an icosphere (20k faces) and a non-convex radial blob (82k faces): wall
    seconds (best of N), primary/total rays and pipeline rays per second.
@@ -43,6 +44,7 @@ from lookingglass.data.rigs import PAPER_FOV_X_DEG, paper_rig  # noqa: E402
 from lookingglass.physics.camera import Cameras  # noqa: E402
 from lookingglass.physics.environment import EnvironmentMap  # noqa: E402
 from lookingglass.physics.optics import IOR_AIR, IOR_GLASS  # noqa: E402
+from lookingglass.render import raycast  # noqa: E402
 from lookingglass.render.raycast import RayCaster  # noqa: E402
 from lookingglass.render.testshapes import radial_blob  # noqa: E402
 from lookingglass.render.tracer import (RenderConfig, _dielectric, _Surface, render_views,  # noqa: E402
@@ -73,8 +75,22 @@ def bench_embree(mesh: trimesh.Trimesh, cams: Cameras, repeats: int) -> dict:
     so = torch.cat([ph, ph[~tir]]).numpy()
     sd = torch.cat([r, t[~tir]]).numpy()
     best2 = min(_timed(lambda: caster.intersect_raw(so, sd, offset=True))[1] for _ in range(repeats))
+    # Building a scene (the refine stage builds ~200 of one face set): RayCaster's, whose faces' tuples are made on
+    # the first build and kept, against embreex handed the numpy arrays (it indexes them element by element).
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    raycast._FACE_TUPLES.clear()
+    first = _timed(lambda: RayCaster.of(vertices, faces))[1]
+    again = min(_timed(lambda: RayCaster.of(vertices, faces))[1] for _ in range(repeats))
+
+    def numpy_build() -> None:
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+
+        TriangleMesh(rtcore_scene.EmbreeScene(), vertices.astype(np.float32), faces.astype(np.int32))
+    plain = min(_timed(numpy_build)[1] for _ in range(repeats))
     return dict(camera_rays=len(o), camera_mrays=len(o) / best / 1e6,
-                secondary_rays=len(so), secondary_mrays=len(so) / best2 / 1e6)
+                secondary_rays=len(so), secondary_mrays=len(so) / best2 / 1e6,
+                build_faces=len(faces), build_first=first, build_again=again, build_numpy=plain)
 
 
 def _timed(fn):
@@ -177,6 +193,17 @@ def main() -> None:
         "|---|---|---|",
         f"| camera rays, 10 x 480 x 360 | {embree['camera_rays']:,} | {embree['camera_mrays']:.1f} |",
         f"| secondary rays off the first hits (blob) | {embree['secondary_rays']:,} | {embree['secondary_mrays']:.1f} |",
+        "",
+        "### Building a scene (`RayCaster`, the blob)",
+        "",
+        "| | faces | ms |",
+        "|---|---|---|",
+        f"| first build of a face set (its faces' tuples made) | {embree['build_faces']:,} | "
+        f"{1e3 * embree['build_first']:.1f} |",
+        f"| again, the same faces (the tuples kept; the refine stage's case) | {embree['build_faces']:,} | "
+        f"{1e3 * embree['build_again']:.1f} |",
+        f"| embreex handed the numpy arrays (it indexes them element by element) | {embree['build_faces']:,} | "
+        f"{1e3 * embree['build_numpy']:.1f} (**{embree['build_numpy'] / embree['build_again']:.1f} x**) |",
         "",
         "## 10 views at 480 x 360 (paper rig), image + two-bounce maps",
         "",
