@@ -40,14 +40,14 @@ from lookingglass.render.raycast import object_masks  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET_S = 2.0
-STEPS = ["masks", "box", "carve", "coverage", "marching_cubes", "components", "subdivision", "finish"]
+STEPS = ["masks", "box", "carve", "coverage", "marching_cubes", "components", "recarve", "subdivision", "finish"]
 
 
 def timing(masks, cams, repeats: int, threads: int) -> dict:
     cfg = HullConfig(num_threads=threads)
     carve_visual_hull(masks, cams, cfg)  # warm-up (imports, allocator)
     runs = [carve_visual_hull(masks, cams, cfg) for _ in range(repeats)]
-    med = {k: float(np.median([r.timings[k] for r in runs])) for k in STEPS + ["total"]}
+    med = {k: float(np.median([r.timings.get(k, 0.0) for r in runs])) for k in STEPS + ["total"]}  # recarve: rare
     tot = [r.timings["total"] for r in runs]
     return dict(median=med, min=min(tot), max=max(tot), hull=runs[-1])
 

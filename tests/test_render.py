@@ -328,15 +328,27 @@ def test_config_validation():
         trace_two_bounce(inverted, _views(8, 6))
 
 
-def test_ray_caster_reuses_a_face_set_only_when_it_is_the_same():
+def test_ray_caster_reuses_a_face_set_only_when_it_is_the_same(monkeypatch):
     """Scenes built from the same vertices and different faces of one shape (the kept face tuples
-    must not stand in for another set), against the exact answer: a ray along -z through (0.2, 0.2)
-    hits the triangle in z = 0 at t = 1 and misses the one in z = 0.5 that lies beside it."""
+    must not stand in for another set), against the exact answer: a ray along -z through (0.1, 0.3)
+    hits the triangle in z = 0 at t = 1 (weights 0.6, 0.1, 0.3 of vertices 0, 1, 2, in the faces' order)
+    and misses the one in z = 0.5 that lies beside it. Then the same with the kept sets bounded, and
+    with a mesh too large for them (built from plain arrays)."""
+    from lookingglass.render import raycast
+
     vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 2, 0.5], [3, 2, 0.5], [2, 3, 0.5]], float)
-    origin, direction = np.array([[0.2, 0.2, 1.0]]), np.array([[0.0, 0.0, -1.0]])
-    for faces, hit in [([[0, 1, 2]], True), ([[3, 4, 5]], False), ([[0, 1, 2]], True), ([[2, 1, 0]], True)]:
-        hits = RayCaster.of(vertices, np.array(faces)).intersect(origin, direction)
-        assert bool(hits.hit[0]) == hit
-        if hit:
-            assert hits.t[0] == pytest.approx(1.0, abs=1e-6)
-            assert hits.face_normal[0] @ [0, 0, 1] == pytest.approx(1.0 if faces == [[0, 1, 2]] else -1.0)
+    origin, direction = np.array([[0.1, 0.3, 1.0]]), np.array([[0.0, 0.0, -1.0]])
+    cases = [([[0, 1, 2]], [0.6, 0.1, 0.3]), ([[3, 4, 5]], None), ([[0, 1, 2]], [0.6, 0.1, 0.3]),
+             ([[2, 1, 0]], [0.3, 0.1, 0.6]), ([[1, 2, 0]], [0.1, 0.3, 0.6])]
+    for kept, largest in [(3, 400_000), (1, 400_000), (3, 0)]:
+        monkeypatch.setattr(raycast, "_FACE_TUPLES_KEPT", kept)
+        monkeypatch.setattr(raycast, "_FACE_TUPLES_MAX_FACES", largest)
+        raycast._FACE_TUPLES.clear()
+        for faces, bary in cases:
+            hits = RayCaster.of(vertices, np.array(faces)).intersect(origin, direction)
+            assert bool(hits.hit[0]) == (bary is not None)
+            if bary is not None:
+                assert hits.t[0] == pytest.approx(1.0, abs=1e-6)
+                np.testing.assert_allclose(hits.bary[0], bary, atol=1e-6)
+                np.testing.assert_allclose(hits.point[0], [0.1, 0.3, 0.0], atol=1e-6)
+        assert len(raycast._FACE_TUPLES) == (0 if largest == 0 else min(kept, 4))

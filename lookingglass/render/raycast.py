@@ -7,6 +7,7 @@ single precision); callers convert to torch where they need gradients.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -36,26 +37,48 @@ class Hits:
 # indexing: a numpy scalar made for every coordinate, and a row view for every face. Python objects
 # that index cheaply give Embree the same float32 triangles in ~1/4 of the time (17 800 vertices,
 # 35 000 faces: 64 -> 15 ms; the refine stage builds ~200 scenes of one face set). The faces' tuples
-# take ~9 ms to make and ~160 bytes a face, so the last few face sets' are kept, up to a bound.
+# take ~9 ms to make and ~180 bytes a face, so the last few face sets' are kept, up to a bound; a
+# larger mesh (a fine hull's marching cubes) is handed over as plain arrays, as is every mesh where
+# an embreex that reads its arrays another way refuses the objects.
 _FACE_TUPLES: list[tuple[np.ndarray, np.ndarray]] = []
 _FACE_TUPLES_KEPT = 3
-_FACE_TUPLES_MAX_FACES = 400_000  # kept in all (~60 MB)
+_FACE_TUPLES_MAX_FACES = 400_000  # kept in all (~70 MB); also the largest mesh built from Python objects
+_FACE_TUPLES_LOCK = threading.Lock()
+_OBJECTS_REFUSED = False  # set once this embreex has refused them
 
 
 def _face_tuples(faces: np.ndarray) -> np.ndarray:
     """(F,) object array of each face's three int vertex indices as a tuple (embreex reads
     `indices[i][k]`), kept for the last few face sets."""
     faces = np.asarray(faces, dtype=np.int32)
-    for known, tuples in _FACE_TUPLES:
-        if known.shape == faces.shape and np.array_equal(known, faces):
-            return tuples
+    with _FACE_TUPLES_LOCK:
+        for known, tuples in _FACE_TUPLES:
+            if known.shape == faces.shape and np.array_equal(known, faces):
+                return tuples
     tuples = np.empty(len(faces), dtype=object)
     tuples[:] = list(zip(*faces.T.tolist()))
-    if len(faces) <= _FACE_TUPLES_MAX_FACES:
+    with _FACE_TUPLES_LOCK:
         _FACE_TUPLES.insert(0, (faces.copy(), tuples))
         while len(_FACE_TUPLES) > _FACE_TUPLES_KEPT or sum(len(f) for f, _ in _FACE_TUPLES) > _FACE_TUPLES_MAX_FACES:
             _FACE_TUPLES.pop()
     return tuples
+
+
+def _embree_scene(vertices: np.ndarray, faces: np.ndarray) -> rtcore_scene.EmbreeScene:
+    """An Embree scene of the indexed triangles (shared vertices, not a triangle soup: the same float32
+    triangles in ~0.55 x the time), from Python objects where they pay (above)."""
+    global _OBJECTS_REFUSED
+    v32, f32 = vertices.astype(np.float32), faces.astype(np.int32)
+    if not _OBJECTS_REFUSED and 0 < len(f32) <= _FACE_TUPLES_MAX_FACES:
+        scene = rtcore_scene.EmbreeScene()
+        try:
+            TriangleMesh(scene, v32.astype(object), _face_tuples(f32))
+            return scene
+        except (TypeError, ValueError):
+            _OBJECTS_REFUSED = True
+    scene = rtcore_scene.EmbreeScene()
+    TriangleMesh(scene, v32, f32)
+    return scene
 
 
 def _extents(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -76,9 +99,7 @@ class RayCaster:
         self.mesh = mesh
         self.vertices = np.asarray(mesh.vertices, dtype=np.float64)
         self.faces = np.asarray(mesh.faces, dtype=np.int64)
-        self._scene = rtcore_scene.EmbreeScene()
-        # indexed (shared vertices), not a triangle soup: the same float32 triangles, built in ~0.55x the time
-        TriangleMesh(self._scene, self.vertices.astype(np.float32).astype(object), _face_tuples(self.faces))
+        self._scene = _embree_scene(self.vertices, self.faces)
         # Secondary rays start this far along their direction so they don't re-hit their origin.
         self.epsilon = 1e-5 * float(np.linalg.norm(_extents(self.vertices, self.faces)))
 
@@ -106,9 +127,9 @@ class RayCaster:
         if offset:
             o = (o + self.epsilon * d).astype(np.float32)
         n = len(o)
-        if n == 0:
-            z = np.zeros((0, 3))
-            return Hits(np.zeros(0, bool), np.zeros(0), np.zeros(0, np.int64), z, z, z, z)
+        if n == 0 or len(self.faces) == 0:  # no rays, or nothing to hit
+            z = np.zeros((n, 3))
+            return Hits(np.zeros(n, bool), np.full(n, np.inf), np.full(n, -1, np.int64), z, z, z, z)
         res = self._scene.run(o, d, output=1)
         face = res["primID"].astype(np.int64)
         hit = res["geomID"] != -1
