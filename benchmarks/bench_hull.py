@@ -201,7 +201,7 @@ def write_doc(args, gt, cams, speed, rows, sph, loads) -> None:
         f"| total min / max over runs | {speed[1]['min']:.3f} / {speed[1]['max']:.3f} | "
         f"{speed[2]['min']:.3f} / {speed[2]['max']:.3f} |",
         "",
-        "Sub-steps: masks = per-view signed distance transforms (OpenCV); box = triangulated centre and "
+        "Sub-steps: masks = per-view signed distance transforms (scipy's exact Euclidean one since session 53, bit-identical between calls where OpenCV's varied); box = triangulated centre and "
         "coarse carving until the box is stable (32^3 rounds, then one 64^3); carve = the fine "
         f"{cfg.resolution}^3 field (10 views, projection as one small matrix product per view, bilinear "
         "`grid_sample`, min over views, chunks of 2^20 voxels); coverage = mask-consistency check; "
