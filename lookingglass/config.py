@@ -331,7 +331,7 @@ class RefineConfig:
                                         range=(0, 1))
     view_coverage_zero: float = setting(0.8, "A view whose mask the hull covers at most this much has weight 0 (linear up to full).",
                                         range=(0, 1))
-    rerender_width: int = setting(240, "Width the input and refined meshes are re-rendered at to compare them with the "
+    rerender_width: int = setting(RERENDER_WIDTH, "Width the input and refined meshes are re-rendered at to compare them with the "
                                        "photos (a keep-check measure; 0: off).", range=(0, 4096))
     rerender_samples: int = setting(RERENDER_SAMPLES, "Samples per pixel and axis of those re-renderings (the same jittered samples for "
                                        "every mesh compared).", range=(1, 8))
