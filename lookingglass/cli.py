@@ -450,16 +450,20 @@ def train_normals(
     (net.num_views) picks a subset of the stored rig's views."""
     import dataclasses
 
-    from .data.torch_dataset import TransparentSceneDataset
-    from .normals.train import VARIANTS, train_normals as run
+    from .normals.config import VARIANTS
     from .presets import preset as make_preset
-    from .progress import Reporter
 
-    device = _device(device)  # checked before any work
-    _outside_inputs(out, "run folder", _splits(data))
+    # the options are checked before torch loads (~3 s; `auto` devices load it), the dataset once it has
     if variant is not None and variant not in VARIANTS:
         raise LookingGlassError(f"--variant must be one of {', '.join(VARIANTS)}, got {variant!r}")
     config = apply_config_flags(ctx, make_preset(preset).normal_training)
+    _outside_inputs(out, "run folder", _splits(data))
+    device = _device(device)
+
+    from .data.torch_dataset import TransparentSceneDataset
+    from .normals.train import train_normals as run
+    from .progress import Reporter
+
     dataset = TransparentSceneDataset(data, "train", views=config.net.num_views, augment=config.augment, seed=config.seed,
                                      photo_noise=config.photo_noise)
     # The network runs at the data's resolution (the dataset preset matches the network preset).
@@ -482,17 +486,21 @@ def train_points(
 ) -> None:
     """Train the point network on normal-net features (cached in OUT/features; resumes from
     OUT/checkpoint.pt; runs under torchrun for DDP)."""
+    from .presets import preset as make_preset
+
+    # the options are checked before torch loads (~3 s; `auto` devices load it), the dataset and the
+    # normal net once it has
+    if threads < 0:  # torch would read it as "leave my setting alone"
+        raise LookingGlassError(f"--threads must be at least 0 (0: half the cores), got {threads}")
+    config = apply_config_flags(ctx, make_preset(preset).point_training)
+    _outside_inputs(out, "run folder", _splits(data))
+    device = _device(device)
+
     from .data.torch_dataset import TransparentSceneDataset
     from .points.train import train_points as run
-    from .presets import preset as make_preset
     from .progress import Reporter
     from .weights import load_normal_net
 
-    device = _device(device)  # checked before any work
-    if threads < 0:  # torch would read it as "leave my setting alone"
-        raise LookingGlassError(f"--threads must be at least 0 (0: half the cores), got {threads}")
-    _outside_inputs(out, "run folder", _splits(data))
-    config = apply_config_flags(ctx, make_preset(preset).point_training)
     net_cfg = load_normal_net(normals).net.cfg
     dataset = TransparentSceneDataset(data, "train", views=net_cfg.num_views, augment=False)
     size = (dataset.config.width, dataset.config.height)
@@ -513,14 +521,17 @@ def train_ior(
 ) -> None:
     """Train the IoR net that `reconstruct --ior auto` reads (inputs cached in OUT/features; resumes
     from OUT/checkpoint.pt; runs under torchrun for DDP)."""
+    from .presets import preset as make_preset
+
+    # the options are checked before torch loads (~3 s; `auto` devices load it), the dataset once it has
+    config = apply_config_flags(ctx, make_preset().ior_training)
+    _outside_inputs(out, "run folder", _splits(data))
+    device = _device(device)
+
     from .data.torch_dataset import TransparentSceneDataset
     from .ior_net import train_ior_net
-    from .presets import preset as make_preset
     from .progress import Reporter
 
-    device = _device(device)  # checked before any work
-    _outside_inputs(out, "run folder", _splits(data))
-    config = apply_config_flags(ctx, make_preset().ior_training)
     train_ior_net(TransparentSceneDataset(data, "train"), out, config, device=device, reporter=Reporter(quiet=quiet))
 
 

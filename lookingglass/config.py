@@ -462,15 +462,18 @@ class PipelineConfig:
 
 
 def resolve_device(name: str) -> str:
-    """'auto' -> 'cuda' when a GPU is present, else 'cpu'; an unavailable CUDA device is an error."""
+    """'auto' -> 'cuda' when a GPU is present, else 'cpu'; an unavailable CUDA device is an error.
+    torch is imported only to look for a GPU (not for 'cpu' or a misspelt name)."""
     import re
 
+    if name not in ("auto", "cpu", "cuda") and not re.fullmatch(r"cuda:\d+", name):
+        raise LookingGlassError(f"device must be cpu, cuda, cuda:N or auto, got {name!r}")
+    if name == "cpu":
+        return name
     import torch
 
     if name == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
-    if name not in ("cpu", "cuda") and not re.fullmatch(r"cuda:\d+", name):
-        raise LookingGlassError(f"device must be cpu, cuda, cuda:N or auto, got {name!r}")
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise LookingGlassError(f"device '{name}' requested but CUDA is not available")
     if name.startswith("cuda:") and int(name[5:]) >= torch.cuda.device_count():

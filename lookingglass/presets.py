@@ -5,16 +5,18 @@
 
 A preset is the typed `Preset`: the pipeline's config (`reconstruct`), the dataset's (`generate`),
 and the normal and point networks' training configs (`train-normals`, `train-points`); the
-networks' own sizes are their modules' `cpu_config` / `paper_config`. The command line builds its
+networks' own sizes are their config modules' `cpu_config` / `paper_config` (lookingglass.normals.config,
+lookingglass.points.config). The command line builds its
 options from these dataclasses and applies what the user gives over the chosen preset.
 
 The shipped weights were trained from `cpu` with per-run overrides (--init, --epochs, --lr,
 --lr-halve-epochs, --max-scenes: weights/*.json "provenance", recipes/*.sh), so there is no
 separate preset for them.
 
-A preset builds each config when it is first read, importing only that config's modules: the
-pipeline's configs (lookingglass.config) import no torch, the trainers' and the dataset's do, so
-`reconstruct` reads and checks its options without them.
+A preset builds each config when it is first read, importing only that config's module; none of
+them imports torch (the trainers' configs live in lookingglass.normals.config,
+lookingglass.points.config and lookingglass.ior_net_config, apart from the networks), so every
+command reads and checks its options, and shows its --help, before torch loads.
 """
 
 from __future__ import annotations
@@ -27,9 +29,9 @@ if TYPE_CHECKING:
     from .capture.config import CaptureConfig
     from .config import PipelineConfig
     from .data.dataset import DatasetConfig
-    from .ior_net import IorTrainConfig
-    from .normals.train import TrainConfig
-    from .points.train import PointTrainConfig
+    from .ior_net_config import IorTrainConfig
+    from .normals.config import TrainConfig
+    from .points.config import PointTrainConfig
 
 DEFAULT_PRESET = "cpu"
 
@@ -73,7 +75,7 @@ def _capture_config() -> CaptureConfig:
 
 
 def _ior_training_config() -> IorTrainConfig:
-    from .ior_net import IorTrainConfig
+    from .ior_net_config import IorTrainConfig
 
     return IorTrainConfig()
 
@@ -104,16 +106,14 @@ def _cpu() -> Preset:
         return DatasetConfig()
 
     def normal_training() -> TrainConfig:
-        from .normals import model as normal_model
-        from .normals.train import TrainConfig
+        from .normals.config import TrainConfig, cpu_config
 
-        return TrainConfig(net=normal_model.cpu_config(), epochs=8, lr=4e-4, lr_halve_epochs=3, views_per_step=4)
+        return TrainConfig(net=cpu_config(), epochs=8, lr=4e-4, lr_halve_epochs=3, views_per_step=4)
 
     def point_training() -> PointTrainConfig:
-        from .points import model as point_model
-        from .points.train import PointTrainConfig
+        from .points.config import PointTrainConfig, cpu_config
 
-        return PointTrainConfig(net=point_model.cpu_config(), epochs=6, lr=3e-4, lr_halve_epochs=2,
+        return PointTrainConfig(net=cpu_config(), epochs=6, lr=3e-4, lr_halve_epochs=2,
                                 checkpoint_every=100)
 
     return Preset("cpu", pipeline=pipeline, dataset=dataset, normal_training=normal_training,
@@ -137,16 +137,14 @@ def _paper() -> Preset:
         return DatasetConfig(preset="paper", width=256, height=192, envmap_height=256, samples_per_axis=3)
 
     def normal_training() -> TrainConfig:
-        from .normals import model as normal_model
-        from .normals.train import TrainConfig
+        from .normals.config import TrainConfig, paper_config
 
-        return TrainConfig(net=normal_model.paper_config())
+        return TrainConfig(net=paper_config())
 
     def point_training() -> PointTrainConfig:
-        from .points import model as point_model
-        from .points.train import PointTrainConfig
+        from .points.config import PointTrainConfig, paper_config
 
-        return PointTrainConfig(net=point_model.paper_config())
+        return PointTrainConfig(net=paper_config())
 
     return Preset("paper", pipeline=pipeline, dataset=dataset, normal_training=normal_training,
                   point_training=point_training)

@@ -1,6 +1,7 @@
 """The command line end to end: render -> reconstruct -> evaluate, and clear errors."""
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -118,23 +119,50 @@ def test_clear_errors(tmp_path, args, message):
     (("reconstruct", "scene", "--out", "scene", "--force"), "scene: output folder must differ from the scene folder"),
     (("reconstruct", "scene", "--out", ".", "--force"), "output folder would replace the input scene"),
     (("generate", "--out", "o", "--scenes", "2", "--shape.min-faces", "-1"), "shape.min_faces must be at least 0"),
+    (("train-normals", "--data", "d", "--out", "o", "--epochs", "0"), "--epochs=0: epochs must be at least 1"),
+    (("train-normals", "--data", "d", "--out", "o", "--variant", "cv"), "--variant must be one of basic, wr, wr+cv"),
+    (("train-normals", "--data", "d", "--out", "o", "--device", "gpu"), "device must be cpu, cuda, cuda:N or auto"),
+    (("train-points", "--data", "d", "--normals", "n.safetensors", "--out", "o", "--loss", "l1"),
+     "unknown point loss 'l1' (choose from nearest, view, chamfer)"),
+    (("train-ior", "--data", "d", "--out", "o", "--min-views", "6", "--max-views", "5"),
+     "min_views (6) is above max_views (5)"),
 ])
 def test_refusals_come_before_the_pipeline_loads(tmp_path, args, message):
     """`reconstruct`'s options are read and checked, the scene folder found and the output folder
-    checked, and `generate`'s options checked, before torch, trimesh and the networks are imported
-    (~4 s of a refusal before session 86): a real process, which then reports what it had imported."""
+    checked, and `generate`'s and the trainers' options checked, before torch, trimesh and the networks
+    are imported (~4 s of a refusal before session 86; the trainers' before session 88): a real
+    process, which then reports what it had imported."""
     (tmp_path / "folder").mkdir()
     (tmp_path / "scene").mkdir()
     (tmp_path / "scene" / "scene.json").write_text("{}")  # found; read only once the pipeline has loaded
     (tmp_path / "full").mkdir()
     (tmp_path / "full" / "earlier.ply").write_text("")
+    code, imported, proc = _probe_imports(tmp_path, args)
+    assert (code, imported) == ("2", "[]"), (proc.stdout, proc.stderr)
+    assert message in " ".join(proc.stderr.split()) and "Traceback" not in proc.stderr, proc.stderr
+
+
+@pytest.mark.parametrize("command, option", [("train-normals", "--net.detail-head"), ("train-points", "--net.residual"),
+                                             ("train-ior", "--net.bins")])
+def test_training_help_before_torch(tmp_path, command, option):
+    """The trainers' --help lists the options generated from their configs without importing torch
+    (the configs' homes: normals/config.py, points/config.py, ior_net_config.py)."""
+    code, imported, proc = _probe_imports(tmp_path, (command, "--help"), columns=200)
+    assert (code, imported) == ("0", "[]"), (proc.stdout, proc.stderr)
+    assert option in proc.stdout
+
+
+def _probe_imports(cwd, args, columns: int | None = None) -> tuple[str, str, subprocess.CompletedProcess]:
+    """Runs the command line with `args` in a fresh process: its exit code and which of torch,
+    trimesh, scipy and cv2 it had imported by then (as printed), and the process."""
     probe = ("import sys\nfrom lookingglass.cli import main\nsys.argv = ['lookingglass', *sys.argv[1:]]\n"
              "try:\n    main()\nexcept SystemExit as exit:\n    code = exit.code\n"
              "print(code, sorted(m for m in ('torch', 'trimesh', 'scipy', 'cv2') if m in sys.modules))")
-    proc = subprocess.run([sys.executable, "-c", probe, *args], cwd=tmp_path, capture_output=True, text=True,
-                          timeout=120)
-    assert proc.stdout.split("\n")[-2] == "2 []", (proc.stdout, proc.stderr)
-    assert message in " ".join(proc.stderr.split()) and "Traceback" not in proc.stderr, proc.stderr
+    env = {**os.environ, **({"COLUMNS": str(columns)} if columns else {})}
+    proc = subprocess.run([sys.executable, "-c", probe, *args], cwd=cwd, capture_output=True, text=True,
+                          timeout=120, env=env)
+    code, _, imported = proc.stdout.split("\n")[-2].partition(" ")
+    return code, imported, proc
 
 
 def test_empty_mask_is_reported_with_its_file(rendered_scene, tmp_path):

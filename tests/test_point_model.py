@@ -15,6 +15,7 @@ import trimesh
 from lookingglass.points import model as pm
 from lookingglass.presets import preset
 from lookingglass.points.features import FEATURE_COLUMNS, NUM_FEATURES, PAPER_FEATURES
+from lookingglass.points.config import POINT_LOSSES
 from lookingglass.points.losses import (LOSSES, chamfer_loss, nearest_l2_loss, unseen_weights,
                                         view_dependent_l2_loss, view_targets)
 from lookingglass.points.model import (PointNet, PointNetConfig, ball_members, ball_query, cpu_config,
@@ -352,7 +353,7 @@ def test_nearest_l2_brute_force_uses_the_hull_points():
     i = [_nearest(P[b], Q[b]) for b in range(2)]
     want = np.mean([((P[b] - Q[b, i[b]]) ** 2).sum(-1).mean() for b in range(2)])
     assert half.point.item() == pytest.approx(want, rel=1e-10)
-    assert set(LOSSES) == {"nearest", "view", "chamfer"}
+    assert tuple(LOSSES) == POINT_LOSSES == ("nearest", "view", "chamfer")  # the config checks --loss against POINT_LOSSES
     # One signature for all: every loss takes every target keyword, and rejects misspelt ones.
     targets = dict(hull_points=hull, view_points=p, view_normals=n, view_valid=None)
     for name, fn in LOSSES.items():

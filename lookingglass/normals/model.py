@@ -10,97 +10,15 @@ All normal maps are camera-frame (x right, y up, z towards the camera), tensors 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import ClassVar
 
 import torch
 from torch import Tensor, nn
 
-from ..configio import check_ranges, setting
-from ..errors import ConfigError
 from ..physics.camera import Cameras
 from ..physics.environment import EnvironmentMap
 from ..physics.optics import IOR_AIR, IOR_GLASS
+from .config import COST_VOLUME_THETA_DEG, NormalNetConfig, cpu_config, paper_config  # noqa: F401 (re-exported)
 from .render_layer import error_map, first_interface, second_interface
-
-# The supplement's cost-volume angles: theta = 0, t, t, t and phi = 0, 0, 120, 240 degrees, with
-# t chosen from the visual hull's normal error for each view count.
-COST_VOLUME_THETA_DEG = {5: 25.0, 10: 15.0, 20: 10.0}
-
-
-@dataclass
-class NormalNetConfig:
-    """Widths of NNet/FNet and the ablation switches. `paper` sizes are the paper's."""
-
-    width: int = setting(256, "Input width (the data's).", range=(8, None))
-    height: int = setting(192, "Input height (the data's).", range=(8, None))
-    enc_channels: tuple[int, int, int] = setting((64, 256, 512), "Encoder widths, finest first.", range=(1, None))
-    fnet_channels: int = setting(64, "FNet (cost-volume feature) width.", range=(1, None))
-    groups: int = setting(16, "GroupNorm groups (each width a multiple of them).", range=(1, None))
-    use_error_map: bool = setting(True, "Feed the hull normals' rendering error and TIR mask (wr).")
-    use_cost_volume: bool = setting(True, "Add the cost volume (wr+cv).")
-    num_views: int = setting(10, "Views per scene.", range=(2, None))
-    cost_volume_k: int = setting(4, "Candidate normals per interface in the cost volume (K; K x K pairs).",
-                                 range=(1, None))
-    cost_volume_theta_deg: float | None = setting(None, "Cost-volume angle (degrees; default: the supplement's for "
-                                                        "num_views).")
-    # Ours, not the paper's: predict a correction to the hull's normals, normalize(Ñ + tanh(out)),
-    # with the last layer zero-initialized, so an untrained net starts at the hull's normals and
-    # training spends its steps on corrections (the paper's net regresses normals from scratch).
-    residual: bool = setting(False, "Predict a correction to the hull's normals (ours), not the normals.")
-    # Ours: a head that predicts, per pixel, how many degrees closer to the truth the net's N1 and
-    # N2 are than the hull's -- than the input mesh's, whatever mesh the net is fed: the refine
-    # stage feeds it its own mesh -- so that later stages can tell where to follow the prediction (the
-    # rendering error tells that only weakly, and an estimate of the net's own error alone does not
-    # either; docs/history.md). Trained after the normals, on their frozen features.
-    gain_head: bool = setting(False, "Also predict, per pixel, how much closer to the truth the predicted N1 and N2 "
-                                     "are than the input mesh's (the hull's in training; degrees; ours).")
-    # Ours: the decoder's correction comes up from 1/8 resolution with no skip link. This head reads the
-    # correction and the inputs at full resolution and adds to the correction (zero-initialized: it
-    # starts as the plain net). It sharpens the corrections coarse hulls and smooth shapes need (test
-    # split N1 median 7.96 -> 6.56 deg); it was meant to spare the creases of good CAD hulls and does not
-    # (docs/results.md, issue 27).
-    detail_head: bool = setting(False, "Add a full-resolution head that corrects the decoder's output from the "
-                                       "inputs (ours).")
-
-    # Settings that change no parameter: weights trained at one view count can start (--init)
-    # training at another -- the cost volume samples K neighbours whatever the rig -- and weights
-    # trained at one image size at another (the net is fully convolutional).
-    FINE_TUNE_FREE: ClassVar[frozenset] = frozenset({"num_views", "cost_volume_theta_deg", "width", "height"})
-    # Weights without the gain head or the detail head may start the training of one
-    # (NormalNet.widen_initial_state).
-    FINE_TUNE_WIDEN: ClassVar[frozenset] = frozenset({"gain_head", "detail_head"})
-
-    def __post_init__(self) -> None:
-        check_ranges(self)
-        widths = (*self.enc_channels, 2 * self.enc_channels[0], self.fnet_channels)  # what the blocks normalize
-        uneven = sorted({c for c in widths if c % min(self.groups, c)})
-        if uneven:
-            raise ConfigError(f"groups ({self.groups}) must divide every width (enc_channels and fnet_channels; "
-                              f"not {', '.join(map(str, uneven))})")
-
-    @property
-    def in_channels(self) -> int:
-        return 15 if self.use_error_map else 13
-
-    @property
-    def theta_deg(self) -> float:
-        if self.cost_volume_theta_deg is not None:
-            return self.cost_volume_theta_deg
-        nearest = min(COST_VOLUME_THETA_DEG, key=lambda v: abs(v - self.num_views))
-        return COST_VOLUME_THETA_DEG[nearest]
-
-
-def paper_config(**kw) -> NormalNetConfig:
-    return NormalNetConfig(**kw)
-
-
-def cpu_config(**kw) -> NormalNetConfig:
-    """Narrower and at half the paper's resolution: trains in about an hour on 2 CPU cores."""
-    base = dict(width=128, height=96, enc_channels=(32, 64, 128), fnet_channels=32, groups=8, residual=True)
-    base.update(kw)
-    return NormalNetConfig(**base)
-
 
 # The gain head's output is GAIN_HEAD_SCALE_DEG * x (degrees): a unit step of its last layer is a
 # few degrees, about the gains at stake.

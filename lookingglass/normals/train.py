@@ -12,67 +12,16 @@ weights.safetensors + weights.json (the network config), the files `reconstruct`
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
 from .. import training
-from ..configio import check_ranges, setting
-from ..errors import ConfigError
-from ..physics.optics import IOR_GLASS
 from ..progress import Reporter
 from ..weights import DEFAULT_ENVMAP_HEIGHT
+from .config import NORMAL_LOSSES, VARIANTS, TrainConfig  # noqa: F401 (re-exported)
 from .inputs import NormalInputs, network_tensors
-from .model import HULL_N1_CHANNELS, HULL_N2_CHANNELS, NormalNet, NormalNetConfig
-
-
-@dataclass
-class TrainConfig:
-    """lr halves every `lr_halve_epochs` (the paper: 1e-4, halved every 2 of 10 epochs)."""
-
-    net: NormalNetConfig = field(default_factory=NormalNetConfig)
-    epochs: int = setting(10, "Passes over the scenes.", range=(1, None))
-    lr: float = setting(1e-4, "Initial learning rate.", range=(0, None))
-    lr_halve_epochs: int = setting(2, "The learning rate halves every this many epochs.", range=(1, None))
-    checkpoint_every: int = setting(50, "Steps between checkpoints.", range=(1, None))
-    seed: int = setting(0, "Initialization, shuffling and augmentation seed.")
-    ior: float = setting(IOR_GLASS, "Index of refraction of the glass.", range=(1.0, 3.0))
-    augment: bool = setting(True, "Augment the training scenes.")
-    photo_noise: float = setting(0.0, "Chance that an augmented scene is degraded like an 8-bit photo (noise, "
-                                      "sRGB quantization).", range=(0, 1))
-    max_scenes: int = setting(0, "Use only the first N scenes (0: all).", range=(0, None))
-    views_per_step: int = setting(0, "Random views of a scene per step (0: all; views are independent images).",
-                                  range=(0, None))
-    init: str = setting("", "Start from these weights.safetensors (fine-tuning; same network config) instead of "
-                            "a random initialization.")
-    loss: str = setting("l2", "Per-pixel loss: l2 (the paper's squared L2 of the normals) or angle (~ the angle "
-                              "itself, so the pixels the hull already has right weigh as much as the wrong ones).")
-    hull_hinge: float = setting(0.0, "Extra weight of the pixels where the net's normal is further from the truth "
-                                     "than the hull's it was fed (issue 27: never worse than the input); 0: none.",
-                                range=(0, None))
-    gain_head_only: bool = setting(False, "Train only the gain head (needs --net.gain-head): every other weight "
-                                          "stays as --init gave it; the loss is the quantile (pinball) loss of the "
-                                          "predicted gains over the hull's normals.")
-    detail_head_only: bool = setting(False, "Train only the detail head (needs --net.detail-head and --init): every "
-                                            "other weight stays as --init gave it.")
-    gain_quantile: float = setting(0.5, "The quantile of the gain over the hull's normals the gain head learns "
-                                        "(lower: a more cautious estimate; 0.5: the median).", range=(0, 1))
-
-    def __post_init__(self) -> None:
-        check_ranges(self)
-        if self.loss not in NORMAL_LOSSES:
-            raise ConfigError(f"loss must be one of {', '.join(NORMAL_LOSSES)}, got {self.loss!r}")
-        if self.gain_head_only and not (self.net.gain_head and self.init):
-            raise ConfigError("--gain-head-only trains the gain head of trained normals: it needs --net.gain-head "
-                              "and --init")
-        if self.detail_head_only and not (self.net.detail_head and self.init and not self.gain_head_only):
-            raise ConfigError("--detail-head-only trains the detail head of trained normals: it needs "
-                              "--net.detail-head and --init, and not --gain-head-only")
-
-
-# The paper's ablations (Table 1): (use_error_map, use_cost_volume).
-VARIANTS = {"basic": (False, False), "wr": (True, False), "wr+cv": (True, True)}
+from .model import HULL_N1_CHANNELS, HULL_N2_CHANNELS, NormalNet
 
 
 # ---- one scene -> network tensors ---------------------------------------------------------------
@@ -96,7 +45,6 @@ def normal_targets(sample: dict, device: str = "cpu") -> dict:
 
 # Charbonnier width of the angle loss, in chord length (|n - t| = 2 sin(angle / 2)): ~1.1 degrees.
 ANGLE_LOSS_EPS = 0.02
-NORMAL_LOSSES = ("l2", "angle")
 
 
 def pixel_loss(n: Tensor, t: Tensor, kind: str = "l2") -> Tensor:

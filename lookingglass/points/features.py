@@ -60,6 +60,7 @@ from torch import Tensor
 from ..config import STRATEGIES  # noqa: F401 (re-exported; its home is lookingglass.config)
 from ..physics.camera import Cameras
 from ..render.raycast import RayCaster
+from .config import FEATURE_COLUMNS, NUM_FEATURES, PAPER_FEATURES, SILHOUETTE_OFFSETS  # noqa: F401 (re-exported)
 
 __all__ = [
     "STRATEGIES",
@@ -77,22 +78,6 @@ __all__ = [
     "select_rendering_error",
 ]
 
-
-# Column layout of map_features(...)["features"] (N, NUM_FEATURES), world frame:
-# point xyz | hull normal | mapped N1 | rendering error | TIR | view cosine (the paper's 12) |
-# silhouette-cone counts (ours, one per SILHOUETTE_OFFSETS).
-SILHOUETTE_OFFSETS = (0.01, 0.02, 0.04)  # hull-normalized units (the hull's radius is 1)
-PAPER_FEATURES = 12  # the paper's columns, before "silhouette"
-NUM_FEATURES = PAPER_FEATURES + len(SILHOUETTE_OFFSETS)
-FEATURE_COLUMNS: dict[str, slice] = {
-    "point": slice(0, 3),
-    "hull_normal": slice(3, 6),
-    "normal": slice(6, 9),
-    "error": slice(9, 10),
-    "tir": slice(10, 11),
-    "cos": slice(11, 12),
-    "silhouette": slice(PAPER_FEATURES, NUM_FEATURES),
-}
 
 # Algorithm 1's initial values, kept by points that no (usable) view sees.
 UNSEEN_ERROR = 2.0

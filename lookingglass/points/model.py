@@ -41,17 +41,13 @@ Choices the paper leaves open (ours):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 import torch.nn.functional as F
 from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
-from ..configio import check_ranges, setting
-from ..errors import ConfigError
-from .features import FEATURE_COLUMNS, NUM_FEATURES
+from .config import FEATURE_COLUMNS, PointNetConfig, cpu_config, paper_config
 
 __all__ = [
     "PointNetConfig",
@@ -75,81 +71,6 @@ NORMAL_COLUMNS = FEATURE_COLUMNS["normal"]
 # Distance matrices are built in chunks of about this many entries (x 4 bytes, plus the sort
 # keys of a ball query), so 20 000 points x 1024 centres never materializes at once.
 CHUNK_ELEMENTS = 1 << 22
-
-
-# ---------------------------------------------------------------------------------------------
-# Configuration
-# ---------------------------------------------------------------------------------------------
-@dataclass
-class PointNetConfig:
-    """Sizes and the paper's switches. The defaults are the paper's network (DESIGN.md, "Figures").
-
-    centres / radii / neighbours / sa_mlps: one entry per set-abstraction level, finest first.
-    fp_mlps: one entry per feature-propagation level, coarsest first (fp_mlps[0] brings the last
-    SA level back to the one before it; fp_mlps[-1] ends at the N input points).
-    num_points: the points the stage samples on the hull per shape (the net accepts any N;
-    a level with more centres than points keeps all of them).
-    """
-
-    # Weights for fewer input columns may start a fine-tune (PointNet.widen_initial_state).
-    FINE_TUNE_WIDEN = frozenset({"in_features"})
-
-    in_features: int = setting(NUM_FEATURES, "Input columns read from the features (the first in_features).")
-    num_points: int = setting(20000, "Points per cloud the stage samples on the hull.", range=(1, None))
-    centres: tuple[int, ...] = (1024, 256, 64, 16)
-    radii: tuple[float, ...] = (0.1, 0.2, 0.4, 0.8)
-    neighbours: tuple[int, ...] = (64, 32, 32, 32)
-    sa_mlps: tuple[tuple[int, ...], ...] = ((64, 64), (128, 128), (256, 256), (512, 512))
-    fp_mlps: tuple[tuple[int, ...], ...] = ((512, 256), (256, 128), (128, 64), (64,))
-    gn_group_size: int = setting(16, "Channels per GroupNorm group.")
-    offset_scale: float = setting(0.25, "offset = offset_scale x tanh(.), in the normalized frame.", range=(0, None))
-    average_pooling: bool = setting(True, "Average ball features over the ball's members (else: max pooling).")
-    normal_difference: bool = setting(True, "Neighbours' grouping features get their normal minus the centre's.")
-    normal_skip: bool = setting(True, "Skip links get the level's normals and their difference to the coarser level's.")
-    # Ours, not the paper's: start at the hull (zero offset, the mapped normal); see the module doc.
-    residual: bool = setting(False, "Start at the hull: zero offset and the mapped normal (ours).")
-
-    def __post_init__(self) -> None:
-        check_ranges(self)
-        self.centres = tuple(int(c) for c in self.centres)
-        self.radii = tuple(float(r) for r in self.radii)
-        self.neighbours = tuple(int(k) for k in self.neighbours)
-        self.sa_mlps = tuple(tuple(int(c) for c in m) for m in self.sa_mlps)
-        self.fp_mlps = tuple(tuple(int(c) for c in m) for m in self.fp_mlps)
-        levels = len(self.centres)
-        if levels == 0 or not (len(self.radii) == len(self.neighbours) == len(self.sa_mlps)
-                               == len(self.fp_mlps) == levels):
-            raise ConfigError("centres, radii, neighbours, sa_mlps and fp_mlps need one entry per level "
-                              f"(got {len(self.centres)}, {len(self.radii)}, {len(self.neighbours)}, "
-                              f"{len(self.sa_mlps)}, {len(self.fp_mlps)})")
-        if any(not m for m in self.sa_mlps + self.fp_mlps):
-            raise ConfigError("every MLP needs at least one layer")
-        if min(self.centres) < 1 or min(self.neighbours) < 1 or min(self.radii) <= 0:
-            raise ConfigError("centres, neighbours and radii must be positive")
-        if self.in_features < NORMAL_COLUMNS.stop:
-            raise ConfigError(f"in_features must hold xyz and the mapped normal (>= {NORMAL_COLUMNS.stop}), "
-                              f"got {self.in_features}")
-
-    @property
-    def levels(self) -> int:
-        return len(self.centres)
-
-
-def paper_config(**kw) -> PointNetConfig:
-    return PointNetConfig(**kw)
-
-
-def cpu_config(**kw) -> PointNetConfig:
-    """4096 points, centres 512/128/32/8, neighbours 32/16/16/16, MLP widths halved; residual
-    start. 313 158 parameters (paper: 1 232 518). Measured on one core of a busy 2-core machine:
-    forward + backward on 4096 points ~0.25 s (forward ~0.18 s, a third of it farthest point
-    sampling); the paper preset on 20 000 points ~1.9 s, peak memory ~0.7 GB.
-    """
-    base = dict(num_points=4096, centres=(512, 128, 32, 8), neighbours=(32, 16, 16, 16),
-                sa_mlps=((32, 32), (64, 64), (128, 128), (256, 256)),
-                fp_mlps=((256, 128), (128, 64), (64, 32), (32,)), gn_group_size=8, residual=True)
-    base.update(kw)
-    return PointNetConfig(**base)
 
 
 # ---------------------------------------------------------------------------------------------

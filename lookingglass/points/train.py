@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -52,10 +51,8 @@ import trimesh
 from torch import Tensor
 
 from .. import training
-from ..configio import check_ranges, setting
-from ..errors import ConfigError, LookingGlassError
+from ..errors import LookingGlassError
 from ..fileio import sha256_file, write_atomic
-from ..physics.optics import IOR_GLASS
 from ..hull import VisualHull
 from ..normals.inputs import NormalInputs
 from ..normals.model import NormalNet
@@ -63,9 +60,10 @@ from ..normals.predict import predict_normals
 from ..progress import Reporter
 from ..threads import torch_threads
 from ..weights import load_normal_net
-from .features import FEATURE_COLUMNS, NUM_FEATURES, STRATEGIES, map_features, sample_hull_points
+from .config import PointTrainConfig
+from .features import FEATURE_COLUMNS, NUM_FEATURES, map_features, sample_hull_points
 from .losses import LOSSES, PointLoss, unseen_weights, view_targets
-from .model import PointNet, PointNetConfig
+from .model import PointNet
 
 __all__ = [
     "PointTrainConfig",
@@ -85,49 +83,6 @@ TARGET_KEYS: dict[str, tuple[str, ...]] = {
     "view": ("nearest_points", "nearest_normals", "view_points", "view_normals", "view_valid"),
 }
 FEATURE_DIR = "features"
-
-
-@dataclass
-class PointTrainConfig:
-    """PNet training. loss: a key of LOSSES ("chamfer", the paper's best; "nearest"; "view").
-    strategy: feature mapping, AV / NE / RE (the paper's best; "view" needs NE or RE, which
-    choose a view per point). lr halves every `lr_halve_epochs`. max_scenes: 0 for all.
-    ior: the glass's index of refraction, for the rendering error of the features."""
-
-    net: PointNetConfig = field(default_factory=PointNetConfig)
-    loss: str = setting("chamfer", f"Training loss: {', '.join(LOSSES)} (chamfer: the paper's best).")
-    strategy: str = setting("RE", f"Feature mapping: {', '.join(STRATEGIES)} (RE: the paper's best).")
-    epochs: int = setting(10, "Passes over the scenes.", range=(1, None))
-    lr: float = setting(1e-4, "Initial learning rate.", range=(0, None))
-    lr_halve_epochs: int = setting(2, "The learning rate halves every this many epochs.", range=(1, None))
-    checkpoint_every: int = setting(50, "Steps between checkpoints.", range=(1, None))
-    seed: int = setting(0, "Initialization, shuffling and point-sampling seed.")
-    max_scenes: int = setting(0, "Use only the first N scenes (0: all).", range=(0, None))
-    ior: float = setting(IOR_GLASS, "Index of refraction of the glass.", range=(1.0, 3.0))
-    init: str = setting("", "Start from these weights.safetensors (fine-tuning; same network config) instead of "
-                            "a random initialization.")
-    unseen_weight: float = setting(0.0, "Chamfer loss: extra weight on ground truth the hull spans (farther than "
-                                        "--unseen-distance from its surface), so PNet learns to carve concavities no "
-                                        "silhouette shows (0: the paper's loss). 8, as a 10-view fine-tune: the "
-                                        "procedural test split's refined CD 0.94 x, the validation shapes' 1.06 x "
-                                        "(false carving); the shipped weights use 0 (docs/results.md).",
-                                   range=(0, None))
-    unseen_distance: float = setting(0.05, "Chamfer loss: where --unseen-weight starts (hull-normalized frame); it "
-                                           "reaches its full value at twice this.", range=(0, None))
-
-    def __post_init__(self) -> None:
-        self.strategy = str(self.strategy).upper()
-        if self.loss not in LOSSES:
-            raise ConfigError(f"unknown point loss {self.loss!r} (choose from {', '.join(LOSSES)})")
-        if self.strategy not in STRATEGIES:
-            raise ConfigError(f"unknown feature-mapping strategy {self.strategy!r} "
-                              f"(choose from {', '.join(STRATEGIES)})")
-        if self.loss == "view" and self.strategy == "AV":
-            raise ConfigError('the "view" loss needs a strategy that chooses a view (NE or RE), not AV')
-        if self.unseen_weight > 0 and self.loss != "chamfer":
-            raise ConfigError(f'--unseen-weight weighs the Chamfer loss\'s ground-truth samples; the {self.loss!r} '
-                              'loss has none')
-        check_ranges(self)
 
 
 # ---- one scene -> cached arrays ---------------------------------------------------------------------
