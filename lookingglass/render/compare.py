@@ -27,9 +27,10 @@ from .tracer import RenderConfig, render_views
 
 @dataclass
 class Rerendering:
-    """photos, renders (V, h, w, 3) float32 normalized and clipped to [0, 1]; masks, silhouettes
-    (V, h, w) bool (the capture's masks shrunk, the mesh's pixel-centre silhouette); error (V,)
-    the mean absolute difference per channel over masks | silhouettes."""
+    """photos, renders (V, h, w, 3) float32 normalized and clipped to [0, 1] (the mesh traced only in
+    masks | silhouettes, the environment seen straight elsewhere: `render_views`' region); masks,
+    silhouettes (V, h, w) bool (the capture's masks shrunk, the mesh's pixel-centre silhouette);
+    error (V,) the mean absolute difference per channel over masks | silhouettes."""
 
     photos: np.ndarray
     renders: np.ndarray
@@ -70,7 +71,7 @@ def rerender(mesh: trimesh.Trimesh, capture, width: int = RERENDER_WIDTH, sample
     envmap = EnvironmentMap(torch.as_tensor(capture.envmap).float())
     config = RenderConfig(ior=capture.ior if ior is None else ior, samples_per_axis=samples_per_axis, threads=threads, device=device,
                           seed=seed)
-    result = render_views(mesh, envmap, cams, config)
+    result = render_views(mesh, envmap, cams, config, region=masks)  # the error reads masks | silhouettes only
     renders = (result.image.cpu() * factor).clamp(0, 1)
     silhouettes = result.mask.cpu()
     region = (masks | silhouettes).unsqueeze(-1).float()
