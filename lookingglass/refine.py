@@ -235,7 +235,7 @@ def contour_vertices(vertices: np.ndarray, faces: np.ndarray, origins: np.ndarra
     """(V, N) bool: vertex n is on view v's contour generator (among its faces some face the
     camera at origins[v] and some face away)."""
     fn = face_normals(vertices, faces)
-    centre = vertices[faces].mean(axis=1)
+    centre = (vertices[faces[:, 0]] + vertices[faces[:, 1]] + vertices[faces[:, 2]]) / 3  # = .mean(axis=1), ~4x faster
     facing = (origins @ fn.T - (centre * fn).sum(axis=1)[None]) > 0  # (V, F): (o - c) . n > 0
     # per vertex, how many of its faces face each camera, against how many faces it has
     F, N = len(faces), len(vertices)
@@ -612,9 +612,14 @@ def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.n
         unit[v_idx, n_idx] = side[behind]
         r[v_idx, n_idx] = np.minimum(reach[behind], config.max_step_px) / px_per_unit[behind]
         pushed = int(behind.sum())
-    w = np.where(active, weight * weights[:, None] * vertex_shares[None, :], 0.0)
-    M = np.einsum("vn,vni,vnj->nij", w, unit, unit)
-    b = np.einsum("vn,vn,vni->ni", w, r, unit)
+    # summed over the active (view, vertex) pairs only (~3% of them): ~20 ms -> ~2 ms a call
+    v_idx, n_idx = np.nonzero(active)
+    w = weight * weights[v_idx] * vertex_shares[n_idx]
+    u = unit[v_idx, n_idx]
+    N = len(vertices)
+    M = np.stack([np.bincount(n_idx, w * u[:, i] * u[:, j], minlength=N) for i in range(3) for j in range(3)],
+                 axis=1).reshape(N, 3, 3)
+    b = np.stack([np.bincount(n_idx, w * r[v_idx, n_idx] * u[:, i], minlength=N) for i in range(3)], axis=1)
     return _Constraints(M, b, rim, outside, pushed)
 
 
