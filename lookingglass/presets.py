@@ -90,7 +90,7 @@ def _cpu() -> Preset:
     epoch). The earlier 2 epochs, halved after 1, stopped while the loss still fell: the same data
     for 8 epochs took the test N1 median from 0.88 to 0.73 x the hull's (docs/history.md).
 
-    Point net: the small PNet on 4096 points (points.model.cpu_config, residual start), a higher
+    Point net: the small PNet on 4096 points (points.config.cpu_config, residual start), a higher
     rate (the residual start keeps the first steps tame) halved every 2 of 6 epochs. Measured on a
     2-core machine with another training job on it, 1 thread, 128x96 images, 10 views: feature
     preparation ~4 s a scene (cost volume and normal net ~2.6 s of it), then ~0.33 s a step: for

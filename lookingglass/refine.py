@@ -617,9 +617,11 @@ def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.n
     w = weight * weights[v_idx] * vertex_shares[n_idx]
     u = unit[v_idx, n_idx]
     N = len(vertices)
+    # (float64 even where nothing is active: bincount of nothing is an int array)
     M = np.stack([np.bincount(n_idx, w * u[:, i] * u[:, j], minlength=N) for i in range(3) for j in range(3)],
-                 axis=1).reshape(N, 3, 3)
-    b = np.stack([np.bincount(n_idx, w * r[v_idx, n_idx] * u[:, i], minlength=N) for i in range(3)], axis=1)
+                 axis=1).astype(np.float64, copy=False).reshape(N, 3, 3)
+    b = np.stack([np.bincount(n_idx, w * r[v_idx, n_idx] * u[:, i], minlength=N) for i in range(3)],
+                 axis=1).astype(np.float64, copy=False)
     return _Constraints(M, b, rim, outside, pushed)
 
 
@@ -946,7 +948,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     while a pass keeps its refined mesh. The result is the last pass's that kept its refined mesh,
     its report's input measures (`*_before`, the re-rendering errors' input values, `input_carve`)
     the first pass's input's, and report.json's `passes` says what each pass kept (and why not), its
-    worst view, re-rendering error and seconds; its other entries (the rounds, the normal term, the
+    worst view, re-rendering error, seconds and whether its normal term's steps were kept; its other entries (the rounds, the normal term, the
     timings) are the returned pass's."""
     config = config or RefineConfig()
     start_time = time.perf_counter()
@@ -991,7 +993,10 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
         report["input_carve"] = first.report["input_carve"]
     report["passes"] = [{"kept": r.report["kept"], "worst_iou": round(_worst_trusted(r), 4),
                          "rounds": len(r.report.get("silhouette_rounds", [None])), "seconds": r.report["seconds"],
-                         **{k: r.report[k] for k in ("kept_why", "rerender_error") if k in r.report}}
+                         **{k: r.report[k] for k in ("kept_why", "rerender_error") if k in r.report},
+                         # whether the returned round kept its normal term's steps (absent where the term did not run)
+                         **({"normal_term_kept": bool(r.report["normal_term"]["kept"])}
+                            if "kept" in r.report.get("normal_term", {}) else {})}
                         for r in results]
     report["seconds"] = round(time.perf_counter() - start_time, 2)
     return dataclasses.replace(best, report=report)

@@ -107,6 +107,7 @@ def test_reconstruct_and_eval_shapes_give_the_same_mesh(scene, tmp_path):
     assert record["refined"]["round"] == refine.get("silhouette_round", 0)
     # the passes (`RefineConfig.passes`, 2 by default) each kept the same mesh
     assert record["refined"]["passes"] == [p["kept"] for p in refine["passes"]]
+    assert record["refined"]["normal_term_kept"] == [p.get("normal_term_kept") for p in refine["passes"]]
     # the kept mesh's worst view, as the refine stage reported it
     chosen = refine["silhouette_iou_after" if refine["kept"] == "refined" else "silhouette_iou_before"]
     assert record["refined"]["iou_min"] == pytest.approx(min(chosen), abs=5e-3)

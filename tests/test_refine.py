@@ -839,6 +839,8 @@ def test_each_pass_feeds_the_network_a_better_mesh(scene, capture):
         cdn.append(shape_metrics(result.mesh, gt)["cdn_mean"])
         assert min(result.report["silhouette_iou_after"]) > 0.99
     assert [p["kept"] for p in result.report["passes"]] == ["refined", "refined"]
+    # no re-rendering check here (rerender_width 0): each pass keeps its normal term's steps
+    assert [p.get("normal_term_kept") for p in result.report["passes"]] == [True, True]
     assert cdn[1] < 0.8 * cdn[0], cdn  # measured 3.04 -> 1.93 degrees (a third pass: 1.64)
 
 

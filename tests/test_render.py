@@ -303,23 +303,28 @@ def test_deterministic_per_seed():
     assert float((a - c).abs().mean() / a.mean()) < 0.1
 
 
-@pytest.mark.parametrize("spp", [1, 2])
-def test_region_traces_its_pixels_as_the_whole_image_does(spp):
-    """render_views(region=R) traces only the samples of R and of the silhouette, each exactly as the
-    whole image's render does (the same image there, bit for bit), and the others see the
+@pytest.mark.parametrize("spp, chunk_rays", [(1, 1 << 20), (2, 1 << 20), (2, 3000)])
+def test_region_traces_its_pixels_as_the_whole_image_does(spp, chunk_rays):
+    """render_views(region=R) traces only the samples of R and of the silhouette, each along the
+    path the whole image's render takes (the same image there: bit for bit where the samples fit
+    one wavefront, to float rounding where later blocks join it), and the others see the
     environment along their camera ray: fewer rays, the same comparison with photos (which reads
     masks | silhouettes only, render/compare.py)."""
     mesh = radial_blob(6)
     cams = _views(40, 30)
     env = EnvironmentMap(torch.rand(16, 32, 3))
-    config = RenderConfig(samples_per_axis=spp, threads=2)
+    config = RenderConfig(samples_per_axis=spp, threads=2, chunk_rays=chunk_rays)
     whole = render_views(mesh, env, cams, config)
     region = torch.zeros(3, 30, 40, dtype=torch.bool)
     region[:, 5:12, 8:30] = True  # a block of background and of the object
     part = render_views(mesh, env, cams, config, region=region)
     traced = region | whole.mask
-    assert torch.equal(part.image[traced], whole.image[traced])
-    assert part.stats.rays_cast < whole.stats.rays_cast and part.stats.primary_rays == whole.stats.primary_rays
+    if chunk_rays >= 3 * 30 * 40 * spp * spp:
+        assert torch.equal(part.image[traced], whole.image[traced])
+    else:  # the wavefront is refilled: a pixel's contributions may be summed in another order
+        assert torch.allclose(part.image[traced], whole.image[traced], rtol=1e-5, atol=1e-6)
+        assert not torch.allclose(part.image[traced], whole.image[traced] * 1.01, rtol=1e-5, atol=1e-6)
+    assert part.stats.rays_cast < 0.8 * whole.stats.rays_cast
     # outside it, where the mesh is far from every sample (not a neighbour of a silhouette pixel),
     # the image is the environment in the pixel's direction, as the whole render has it there
     near = torch.nn.functional.max_pool2d(whole.mask.float()[:, None], 3, 1, 1)[:, 0].bool()

@@ -1,6 +1,7 @@
 """Training of the normal network: what one step computes (`NormalInputs.from_sample` ->
-`network_tensors` -> the net -> `normal_loss`, the inference path's own inputs) and its config
-(the named presets are lookingglass.presets'). The loop itself (Adam, the paper's step schedule,
+`network_tensors` -> the net -> `normal_loss`, the inference path's own inputs); its config,
+`TrainConfig`, is lookingglass.normals.config's (no torch there: the command line reads it before
+torch loads), the named presets lookingglass.presets'. The loop itself (Adam, the paper's step schedule,
 checkpoints and exact resume, progress, metrics.jsonl, DistributedDataParallel under torchrun)
 is lookingglass.training's.
 

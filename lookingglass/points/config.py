@@ -107,7 +107,7 @@ def cpu_config(**kw) -> PointNetConfig:
 
 @dataclass
 class PointTrainConfig:
-    """PNet training. loss: a key of LOSSES ("chamfer", the paper's best; "nearest"; "view").
+    """PNet training. loss: one of POINT_LOSSES ("chamfer", the paper's best; "nearest"; "view").
     strategy: feature mapping, AV / NE / RE (the paper's best; "view" needs NE or RE, which
     choose a view per point). lr halves every `lr_halve_epochs`. max_scenes: 0 for all.
     ior: the glass's index of refraction, for the rendering error of the features."""

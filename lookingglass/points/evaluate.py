@@ -122,6 +122,8 @@ class _ShapeEvaluation:
                                          # what each pass kept (`passes`): "refined" twice where the second
                                          # pass's mesh was kept
                                          "passes": [p["kept"] for p in refined.report["passes"]],
+                                         # and whether each kept its normal term's steps (None: the term did not run)
+                                         "normal_term_kept": [p.get("normal_term_kept") for p in refined.report["passes"]],
                                          "seconds": refined.report["seconds"],
                                          # whether the input was cut to the hull first (its input carve)
                                          "input_carved": bool(refined.report.get("input_carve", {}).get("kept")),

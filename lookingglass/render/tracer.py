@@ -9,7 +9,8 @@ Two entry points, one physics:
 * `render_views(mesh, envmap, cameras, config)`: the full image (light transport through the
   smooth dielectric, reflection and refraction at every interface, Fresnel-weighted, total
   internal reflection, up to `max_depth` interfaces, anti-aliased) plus the two-bounce maps above
-  (computed by `trace_two_bounce`'s own code, on the same Embree scene).
+  (computed by `trace_two_bounce`'s own code, on the same Embree scene); with `region`, the mesh
+  traced only where the image is read (a comparison with photos).
 
 Light transport: a wavefront of rays over all views, deterministic Fresnel branching (both the
 reflected and the refracted branch are followed, weighted F and 1 - F), pruning of branches under
@@ -466,10 +467,13 @@ def render_views(mesh: trimesh.Trimesh, envmap: EnvironmentMap, cameras: Cameras
 
     region: (V, H, W) bool, where the image is needed (a comparison with photos reads it inside
     their masks and the mesh's silhouette only): then only the samples of the region's pixels and
-    of the silhouette's (`TwoBounce.mask`) are traced, each as it would have been, and the others
-    read the environment along their camera ray (at an edge a jittered sample of a pixel whose
-    centre misses the mesh might have met it); ~1/3 of a 10-view re-rendering's rays are
-    background pixels'.
+    of the silhouette's (`TwoBounce.mask`) are traced, each along the same path as without it, and
+    the others read the environment along their camera ray (at an edge a jittered sample of a
+    pixel whose centre misses the mesh might have met it); ~1/3 of a 10-view re-rendering's rays
+    are background pixels'. Where every sample fits one wavefront (`chunk_rays`; a 240x180
+    10-view re-rendering at 1 spp does) the region's pixels are the same to the bit; where later
+    blocks of samples join, they join sooner and a pixel's contributions may be summed in
+    another order (~1e-7).
     """
     cfg = config or RenderConfig()
     start = time.perf_counter()
