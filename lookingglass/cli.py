@@ -592,7 +592,8 @@ def eval_shapes(
     weights: Optional[Path] = typer.Option(None, help="Normal-network weights (default: the shipped ones)."),
     views: int = typer.Option(10, help="Views per scene."),
     strategies: str = typer.Option("RE,NE,AV", help="Feature-mapping strategies, comma-separated."),
-    latent_iterations: int = typer.Option(10, help="Latent-optimization steps per phase (0: skip)."),
+    latent_iterations: int = typer.Option(0, help="Latent-optimization steps per phase (0: none, as `reconstruct`'s "
+                                                  "default)."),
     max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
     point_weights: Optional[Path] = typer.Option(None, help="PNet weights: adds a pnet row (default: shipped)."),
     refine: bool = typer.Option(True, "--refine/--no-refine", help="Add a `refined` row: the pnet surface through "

@@ -39,7 +39,7 @@ def help_line(command: str, flag: str) -> str:
 
 @pytest.mark.parametrize("command, flag, shown", [
     ("reconstruct", "--hull.resolution,--hull-resolution", ["Range: 16 to 1024", "[default: 128]"]),
-    ("reconstruct", "--normals.latent.iterations-n2", ["(paper: 500)", "[default: 10]"]),
+    ("reconstruct", "--normals.latent.iterations-n2", ["(paper: 500)", "[default: 0]"]),
     ("reconstruct", "--surface.point-weight", ["[default: 4.0]"]),
     ("reconstruct", "--stop-after", ["[default: refine]"]),
     ("train-normals", "--net.groups", ["(paper: 16)", "[default: 8]"]),
