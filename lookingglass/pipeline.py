@@ -1,6 +1,6 @@
 """`reconstruct`: run the pipeline's stages on a scene folder and write the results.
 
-Stages: visual_hull -> normals (network + latent optimization; needs weights) -> surface (hull
+Stages: visual_hull -> normals (network, + latent optimization where asked; needs weights) -> surface (hull
 points with the mapped normals, moved and refined by PNet when its weights ship, screened Poisson)
 -> refine (the surface's vertices moved until its silhouettes match the masks, smoothed; the
 better of the surface and the refined mesh is kept). Outputs (capture frame, written atomically):
@@ -177,7 +177,9 @@ def _estimate_ior(capture: Capture, mesh: trimesh.Trimesh, mesh_stage: str, conf
 def _normals(capture, hull: VisualHull, weights: NormalWeights, trained_views: int, requested: int,
              config: PipelineConfig, out_dir: Path, reporter: Reporter) -> NormalStageResult:
     """The normals stage; writes OUT/normals/."""
-    with reporter.stage("normals", "normals (network + latent optimization)") as rec:
+    latent = config.normals.latent
+    title = "normals (network + latent optimization)" if latent.iterations_n2 + latent.iterations_both else "normals (network)"
+    with reporter.stage("normals", title) as rec:
         result = run_normal_stage(capture, hull.mesh, weights, config.normals.latent, config.device)
         write_normal_views(out_dir / "normals", result)
         rec.update(result.report, trained_views=trained_views)
