@@ -94,9 +94,9 @@ class LatentOptConfig:
     500). Off by default: the steps lower the normals' render error but not their angle errors (the
     sweep in docs/history.md, benchmarks/latent_sweep.py: 10.51 -> 10.48 deg N1 median from 0 to
     40 + 40; the test split's Table 1, 10 + 10: 6.74 -> 6.72 deg), nor the final mesh (session 88:
-    the 480x360 test split's first 12 scenes: refined CD 4.74 / 4.66 with 10 + 10 / none, CDN-mean 6.10
-    both), and 10 + 10 took ~7 s of a 10-view
-    `reconstruct` on the 2-core machine; the shape tables were always measured without them."""
+    the 480x360 test split's first 12 scenes, refined CD 4.74 / 4.66 with 10 + 10 / none, CDN-mean
+    6.10 both), and 10 + 10 took ~7 s of a 10-view `reconstruct` on the 2-core machine; the shape
+    tables were always measured without them."""
 
     iterations_n2: int = setting(0, "Latent-optimization steps on N2 (N1 held; 0: none).", range=(0, None))
     iterations_both: int = setting(0, "Latent-optimization steps on N1 and N2 (0: none).", range=(0, None))

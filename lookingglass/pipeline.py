@@ -178,7 +178,7 @@ def _normals(capture, hull: VisualHull, weights: NormalWeights, trained_views: i
              config: PipelineConfig, out_dir: Path, reporter: Reporter) -> NormalStageResult:
     """The normals stage; writes OUT/normals/."""
     latent = config.normals.latent
-    title = "normals (network + latent optimization)" if latent.iterations_n2 + latent.iterations_both else "normals (network)"
+    title = "normals (network" + (" + latent optimization)" if latent.iterations_n2 + latent.iterations_both else ")")
     with reporter.stage("normals", title) as rec:
         result = run_normal_stage(capture, hull.mesh, weights, config.normals.latent, config.device)
         write_normal_views(out_dir / "normals", result)

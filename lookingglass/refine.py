@@ -948,8 +948,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     while a pass keeps its refined mesh. The result is the last pass's that kept its refined mesh,
     its report's input measures (`*_before`, the re-rendering errors' input values, `input_carve`)
     the first pass's input's, and report.json's `passes` says what each pass kept (and why not), its
-    worst view, re-rendering error, seconds and whether its normal term's steps were kept; its other entries (the rounds, the normal term, the
-    timings) are the returned pass's."""
+    worst view, re-rendering error, seconds and whether its normal term's steps were kept; its other
+    entries (the rounds, the normal term, the timings) are the returned pass's."""
     config = config or RefineConfig()
     start_time = time.perf_counter()
     results = [refine_pass(mesh, hull, masks, cameras, config, view_coverage, capture, normals, view_names)]
