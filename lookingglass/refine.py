@@ -620,8 +620,8 @@ def _constraints(vertices: np.ndarray, faces: np.ndarray, s: np.ndarray, g: np.n
     # (float64 even where nothing is active: bincount of nothing is an int array)
     M = np.stack([np.bincount(n_idx, w * u[:, i] * u[:, j], minlength=N) for i in range(3) for j in range(3)],
                  axis=1).astype(np.float64, copy=False).reshape(N, 3, 3)
-    b = np.stack([np.bincount(n_idx, w * r[v_idx, n_idx] * u[:, i], minlength=N) for i in range(3)],
-                 axis=1).astype(np.float64, copy=False)
+    wr = w * r[v_idx, n_idx]
+    b = np.stack([np.bincount(n_idx, wr * u[:, i], minlength=N) for i in range(3)], axis=1).astype(np.float64, copy=False)
     return _Constraints(M, b, rim, outside, pushed)
 
 
