@@ -385,7 +385,8 @@ class RefineConfig:
     keep_tolerance: float = setting(0.002, "The refined mesh is kept unless a measure is worse than the input's by "
                                            "more than this (the worst view's IoU; the mean IoU, only where the "
                                            "refined mesh re-renders the photos better by more than 1%, else "
-                                           "strictly; relative for the roughness).", range=(0, None))
+                                           "by keep_iou_noise at most; relative for the roughness).",
+                                  range=(0, None))
     keep_iou_noise: float = setting(0.0005, "The mean IoU may also fall by up to this where the refined mesh "
                                             "re-renders the photos no worse: a few pixels a view, rims moved by "
                                             "hundredths of a pixel (docs/history.md, session 89).", range=(0, None))

@@ -82,7 +82,8 @@ def _ior_training_config() -> IorTrainConfig:
 
 def _cpu() -> Preset:
     """Pipeline: the defaults, no latent-optimization steps (they move the angles by hundredths of a
-    degree and the final mesh not at all; `LatentOptConfig`). Dataset: 128 x 96 images (the cpu normal net's size), E 256 x 128, 4 spp --
+    degree and the final mesh not at all; `LatentOptConfig`). Dataset: 128 x 96 images (the cpu
+    normal net's size), E 256 x 128, 4 spp --
     about 2.5 s per 10-view scene on one core.
 
     Normal net: 8 epochs over ~600 scenes, 4 random views a step (more scenes per second than all
