@@ -105,6 +105,7 @@ from __future__ import annotations
 import dataclasses
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -653,10 +654,10 @@ class _PhotoTarget:
                    EnvironmentMap(torch.as_tensor(capture.envmap).float() * factor).resized(envmap_height),
                    float(capture.ior))
 
-    def loss(self, vertices: np.ndarray, faces: np.ndarray, grad: bool = False) -> tuple[float, np.ndarray | None]:
+    def loss(self, vertices: np.ndarray, faces: np.ndarray, grad: bool = False) -> tuple[float, Callable | None]:
         """Mean absolute difference per channel between the photos and the rendering layer's
         image of the mesh's two-bounce normals, over the mask pixels the two-bounce path explains;
-        with its gradient (N, 3) w.r.t. the vertices when `grad`."""
+        with a function giving its gradient (N, 3) w.r.t. the vertices when `grad` (`_gradient`)."""
         x = torch.as_tensor(vertices, dtype=torch.float32).requires_grad_(grad)
         with torch.set_grad_enabled(grad):
             tb = mesh_two_bounce(x, torch.as_tensor(faces, dtype=torch.long), self.cams, ior=self.ior)
@@ -665,8 +666,17 @@ class _PhotoTarget:
             loss = ((comparable(out.image) - self.photos).abs() * m).sum() / (3 * m.sum()).clamp(min=1)
             if not grad:
                 return float(loss), None
-            loss.backward()  # deterministic: the vertex gathers are index_select's (gather_rows)
-        return float(loss.detach()), x.grad.numpy().astype(np.float64)
+        return float(loss.detach()), _gradient(loss, x)
+
+
+def _gradient(loss: torch.Tensor, x: torch.Tensor):
+    """The gradient (N, 3) float64 of `loss` w.r.t. the vertices `x`, as a function run when a descent
+    asks for it: a trial step the descent rejects (about one a step) never runs its backward pass."""
+
+    def gradient() -> np.ndarray:
+        loss.backward()  # deterministic: the vertex gathers are index_select's (gather_rows)
+        return x.grad.numpy().astype(np.float64)
+    return gradient
 
 
 @dataclass
@@ -728,9 +738,10 @@ class _NormalTarget:
         share = float(pick.float().mean()) if share is None else share
         return cls(origins.reshape(-1, 3)[pick], dirs.reshape(-1, 3)[pick], world(n1), world(n2), ior, share)
 
-    def loss(self, vertices: np.ndarray, faces: np.ndarray, grad: bool = False) -> tuple[float, np.ndarray | None]:
+    def loss(self, vertices: np.ndarray, faces: np.ndarray, grad: bool = False) -> tuple[float, Callable | None]:
         """Mean of (1 - cos) between the mesh's and the target's normals at both hits, over the
-        trusted pixels where the mesh's two-bounce path exists; with its gradient when `grad`."""
+        trusted pixels where the mesh's two-bounce path exists; with a function giving its gradient
+        when `grad` (`_gradient`)."""
         x = torch.as_tensor(vertices, dtype=torch.float32).requires_grad_(grad)
         f = torch.as_tensor(faces, dtype=torch.long)
         with torch.set_grad_enabled(grad):
@@ -741,8 +752,7 @@ class _NormalTarget:
             loss = (valid * misfit).sum() / valid.sum().clamp(min=1)
             if not grad:
                 return float(loss), None
-            loss.backward()  # deterministic: the vertex gathers are index_select's (gather_rows)
-        return float(loss.detach()), x.grad.numpy().astype(np.float64)
+        return float(loss.detach()), _gradient(loss, x)
 
 
 def _descend(x: np.ndarray, x0: np.ndarray, faces: np.ndarray, target, precondition,
@@ -759,11 +769,12 @@ def _descend(x: np.ndarray, x0: np.ndarray, faces: np.ndarray, target, precondit
     value, g = target.loss(x, faces, grad=True)
     for _ in range(iterations):
         losses.append(value)
-        d = -precondition(g)
+        d = -precondition(g() if callable(g) else g)
         d /= max(float(np.percentile(np.linalg.norm(d, axis=1), 99)), 1e-12)
         while step > 1e-4:
             proposed = _unfolded(reference, x, x + step * d, faces)
-            # each trial carries its gradient: an accepted one is the next step's (one cast a step fewer)
+            # each trial carries its gradient (run only if it is accepted): an accepted one is the next
+            # step's (one cast a step fewer)
             trial, trial_g = target.loss(proposed, faces, grad=True)
             if trial < value:
                 x, value, g = proposed, trial, trial_g

@@ -83,7 +83,9 @@ def main() -> None:
             print(f"{name:15s} {v:40s} CD {m['cd']:6.2f} CDN {m['cdn_mean']:6.2f} metro {m['metro']:6.2f} "
                   f"vol {result.refined.volume / gt.volume:.3f} IoU {iou:.4f} trusted {result.report.get('normal_term', {}).get('trusted_share', 0):.3f} bias {result.report['terms_after'].get('silhouette_bias_px', np.nan):+.3f}px rr {rr:.4f} {term_text} {'kept' if kept else 'REJECTED ' + result.report.get('kept_why', '')} "
                   f"{seconds:.1f}s carve {result.report.get('hull_carve', {}).get('kept', '-')} "
-                  f"rounds {len(result.report.get('silhouette_rounds', [None]))}", flush=True)
+                  f"rounds {len(result.report.get('silhouette_rounds', [None]))} passes "
+                  + " ".join(f"{q['kept'][0]}{'T' if q.get('normal_term_kept') else 't'}" for q in result.report.get("passes", [])),
+                  flush=True)
     # ratios of the means, as docs/results.md and issue 25's bars use them
     print("\nmeans: CD/hull CDN/hull CD CDN Metro | worst IoU | kept | seconds | rerender")
     for v, r in rows.items():
