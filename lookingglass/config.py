@@ -294,6 +294,10 @@ class RefineConfig:
                                         "the bracket 7.96 -> 5.62), CDN-mean 5.58 -> 5.41. At 10 views a third pass "
                                         "would cost ~10 s against issue 25's 30 s for the stage (docs/history.md, "
                                         "sessions 80-81).", range=(0, None))
+    term_passes: int = setting(2, "Most passes where the pass before kept its normal term's steps: past passes (and "
+                                  "extra_pass_views' one), one more pass runs while the pass before kept its refined "
+                                  "mesh and its normal term (new normal targets move such a mesh on; where the term "
+                                  "was dropped, the next pass's net sees about the mesh it saw).", range=(1, 5))
     silhouette_iou_target: float = setting(0.98, "The silhouette IoU below which a view pulls harder in the next "
                                                  "round (silhouette_retries; issue 25's bar).", range=(0, 1))
     field_blur_px: float = setting(0.0, "Gaussian blur (sigma, pixels) of the masks' signed-distance fields the "

@@ -103,6 +103,7 @@ that explains the photos worse is not kept.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 import warnings
 from collections.abc import Callable
@@ -671,8 +672,10 @@ class _PhotoTarget:
 
 def _gradient(loss: torch.Tensor, x: torch.Tensor):
     """The gradient (N, 3) float64 of `loss` w.r.t. the vertices `x`, as a function run when a descent
-    asks for it: a trial step the descent rejects (about one a step) never runs its backward pass."""
+    asks for it (once; later calls return the same array): a trial step the descent rejects (about one
+    a step) never runs its backward pass."""
 
+    @functools.cache
     def gradient() -> np.ndarray:
         loss.backward()  # deterministic: the vertex gathers are index_select's (gather_rows)
         return x.grad.numpy().astype(np.float64)
@@ -976,7 +979,8 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     results = [refine_pass(mesh, hull, masks, cameras, config, view_coverage, capture, normals, view_names)]
     later = dataclasses.replace(config, input_carve=False)  # the kept mesh was cut to the hull where it could be
     passes = config.passes + (0 < config.extra_pass_views <= len(masks))
-    while len(results) < passes and results[-1].report["kept"] == "refined":
+    while results[-1].report["kept"] == "refined" and (
+            len(results) < passes or len(results) < config.term_passes and _term_kept(results[-1])):
         last = results[-1]  # measured by its pass: its silhouettes and re-rendering are the next pass's input's
         seed = {"input_casts": last.casts,
                 **({"input_rerendering": last.rerendering} if last.rerendering is not None else {})}
@@ -1021,6 +1025,11 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
                         for r in results]
     report["seconds"] = round(time.perf_counter() - start_time, 2)
     return dataclasses.replace(best, report=report)
+
+
+def _term_kept(result: RefineResult) -> bool:
+    """Whether `result`'s pass kept its normal term's steps (in the round it returned)."""
+    return bool(result.report.get("normal_term", {}).get("kept", False))
 
 
 def _worst_trusted(result: RefineResult) -> float:

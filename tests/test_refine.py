@@ -974,6 +974,30 @@ def test_the_descent_step_grows_back_after_a_step_that_fell():
     assert reached[1.0] < 0.3 and reached[2.0] == pytest.approx(0.15 + 3 * 0.3), reached
 
 
+def test_a_descent_that_cannot_step_reads_its_gradient_again():
+    """`_descend` where no step lowers the loss (a mesh at its minimum): every trial is refused, so each
+    next step starts from the same vertices and gradient, which `_gradient` computes once and hands out
+    again (its backward pass runs only when asked: a second one through the freed graph would raise)."""
+    from lookingglass.refine import _descend, _gradient
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    x0, faces = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    backward = []
+
+    def loss(x, f, grad):
+        t = torch.as_tensor(x).requires_grad_(grad)
+        value = ((t - torch.as_tensor(x0)) ** 2).sum()
+        if not grad:
+            return float(value), None
+        backward.append(_gradient(value, t))
+        return float(value), backward[-1]
+
+    x, losses = _descend(x0.copy(), x0, faces, SimpleNamespace(loss=loss), lambda g: g, 0.1, 3)
+    assert np.array_equal(x, x0) and losses == [0.0] * 4
+    first = backward[0]
+    assert np.array_equal(first(), np.zeros_like(x0)) and first() is first()
+
+
 def test_the_linear_solve_solves_the_silhouette_system():
     """`_Solver` (the silhouette solves and the descents' smoothing): with enough CG iterations its
     solution satisfies (M + L^T C L + c I) d = rhs, the system assembled and solved directly here, to 1e-4
