@@ -683,6 +683,39 @@ def test_the_keep_check_weighs_a_small_iou_loss_against_the_photos():
     assert worse_measures(iou_in, iou_in, w, (1.0, 1.01), 2, None, tol) == ["roughness 1 -> 1.01", "2 fold-over(s)"]
 
 
+@pytest.mark.parametrize("kept, term_kept, views, term_passes, passes_run", [
+    (["refined"] * 3, [True, True, True], 10, 3, 3),  # the second pass kept its normal term: one more
+    (["refined"] * 3, [True, False, True], 10, 3, 2),  # its term dropped: the next net sees about the same mesh
+    (["refined", "input", "refined"], [True, True, True], 10, 3, 2),  # it kept its input: the passes end
+    (["refined"] * 3, [True, True, True], 10, 2, 2),  # term_passes 2: passes alone decides
+    (["refined"] * 4, [True, True, False, True], 20, 4, 3),  # 20 views: three passes, the third's term dropped
+    (["refined"] * 4, [True, True, True, True], 20, 4, 4),
+])
+def test_a_pass_that_kept_its_normal_term_earns_one_more(monkeypatch, kept, term_kept, views, term_passes,
+                                                         passes_run):
+    """`term_passes`: past `passes` (and the extra pass from 20 views), one more pass runs, up to
+    term_passes, while the pass before kept its refined mesh and its normal term's steps."""
+    import lookingglass.refine as refine
+    from lookingglass.refine import RefineResult
+
+    calls = []
+
+    def one_pass(mesh, hull, masks, cameras, config, view_coverage, capture, normals, view_names, warn=True,
+                 seed=None):
+        i = len(calls)
+        calls.append(mesh)
+        report = {"kept": kept[i], "normal_term": {"kept": term_kept[i]}, "terms_before": {},
+                  "silhouette_iou_before": [0.99], "silhouette_iou_mean": [0.99, 0.99],
+                  "silhouette_iou_after": [0.99], "seconds": 1.0}
+        return RefineResult(f"mesh {i}" if kept[i] == "refined" else mesh, f"mesh {i}", report, np.ones(1), i)
+
+    monkeypatch.setattr(refine, "refine_pass", one_pass)
+    result = refine_surface("input", None, np.zeros((views, 1, 1), bool), None,
+                            RefineConfig(passes=2, term_passes=term_passes))
+    assert len(calls) == passes_run
+    assert [p["normal_term_kept"] for p in result.report["passes"]] == term_kept[:passes_run]
+
+
 def test_the_keep_check_passes_over_a_mean_iou_fall_within_its_noise_where_the_photos_are_no_worse():
     """A later pass refused for a mean IoU 0.0001 lower with a better re-rendering (val240v20's finned
     body, session 89): the mean may fall by up to keep_iou_noise where the re-rendering is no worse
