@@ -33,6 +33,7 @@ from lookingglass.metrics import load_mesh, shape_metrics
 ROOT = Path(__file__).resolve().parents[1]
 TARGET_SECONDS, TARGET_REFINE_SECONDS, TARGET_MB = 60.0, 30.0, 4096.0
 TARGET_IOR_SECONDS = 60.0  # issue 22: --ior auto adds at most this to a 10-view reconstruct
+NOTES_MARKER = "<!-- notes below: kept when the benchmark rewrites the figures above -->\n"
 
 
 def main() -> int:
@@ -118,7 +119,7 @@ def main() -> int:
     if estimates:
         e = estimates[0]
         net = e.get("learned")
-        lines += ["", f"The IoR estimate (the stage `ior`: the search, 17 renders of the kept mesh at 120 px"
+        lines += ["", "The IoR estimate (the stage `ior`: the search, 17 renders of the kept mesh at 120 px"
                   + (", and the IoR net" if net else "") + f"): {e['value']:.4f} +- {e['uncertainty']:.4f} "
                   f"({'the net' if e.get('method') == 'learned' else 'the search'}), "
                   f"{'reliable' if e['reliable'] else 'flagged unreliable'} (contrast {e['contrast']:.3f})"
@@ -126,7 +127,9 @@ def main() -> int:
                      else "") + "; the scene's glass is 1.4723."]
     section = ROOT / "docs" / ("benchmarks_pipeline_cuda.md" if gpu else "benchmarks_pipeline_ior.md" if auto
                                else "benchmarks_pipeline.md")
-    section.write_text("\n".join(lines) + "\n")
+    # hand-written notes under NOTES_MARKER (what the figures mean, what was tried) survive a rerun
+    notes = section.read_text().partition(NOTES_MARKER)[2] if section.exists() else ""
+    section.write_text("\n".join(lines) + "\n" + (f"\n{NOTES_MARKER}{notes}" if notes.strip() else ""))
     print(f"wrote {section.relative_to(ROOT)}")
     return 0
 
