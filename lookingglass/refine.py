@@ -670,7 +670,7 @@ class _PhotoTarget:
         return float(loss.detach()), _gradient(loss, x)
 
 
-def _gradient(loss: torch.Tensor, x: torch.Tensor):
+def _gradient(loss: torch.Tensor, x: torch.Tensor) -> Callable[[], np.ndarray]:
     """The gradient (N, 3) float64 of `loss` w.r.t. the vertices `x`, as a function run when a descent
     asks for it (once; later calls return the same array): a trial step the descent rejects (about one
     a step) never runs its backward pass."""
@@ -968,8 +968,9 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
                    config: RefineConfig | None = None, view_coverage: np.ndarray | None = None,
                    capture=None, normals=None, view_names=None) -> RefineResult:
     """The refine stage: `config.passes` passes of `refine_pass` (below, which says what the arguments
-    are; one more from `config.extra_pass_views` views on), each from the mesh the pass before kept,
-    while a pass keeps its refined mesh. The result is the last pass's that kept its refined mesh,
+    are; one more from `config.extra_pass_views` views on, and more up to `config.term_passes` while a
+    pass keeps its normal term), each from the mesh the pass before kept, while a pass keeps its refined
+    mesh. The result is the last pass's that kept its refined mesh,
     its report's input measures (`*_before`, the re-rendering errors' input values, `input_carve`)
     the first pass's input's, and report.json's `passes` says what each pass kept (and why not), its
     worst view, re-rendering error, seconds and whether its normal term's steps were kept; its other
