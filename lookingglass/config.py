@@ -294,14 +294,13 @@ class RefineConfig:
                                         "the bracket 7.96 -> 5.62), CDN-mean 5.58 -> 5.41. At 10 views a third pass "
                                         "would cost ~10 s against issue 25's 30 s for the stage (docs/history.md, "
                                         "sessions 80-81).", range=(0, None))
-    term_passes: int = setting(2, "Most passes where the pass before kept its normal term's steps: past passes (and "
-                                  "extra_pass_views' one), one more pass runs while the pass before kept its refined "
-                                  "mesh and its normal term (new normal targets move such a mesh on; where the term "
-                                  "was dropped, the next pass's net sees about the mesh it saw). 3 at 10 views: "
-                                  "val480 CD 3.69 -> 3.45, CDN-mean 7.04 -> 6.87 (the third pass on 6 of 10); the "
-                                  "480x360 test split's first 8 scenes CD 5.09 -> 4.88, CDN-mean 5.32 -> 5.21 (on 5 of "
-                                  "8, one worse), for ~25% more time in the mean: not the default (docs/history.md, "
-                                  "session 90).", range=(1, 5))
+    term_passes: int = setting(0, "Passes past passes (and extra_pass_views' one), at most this many, each run while the "
+                                  "pass before kept its refined mesh and its normal term (new normal targets move such "
+                                  "a mesh on; where the term was dropped, the next pass's net sees about the mesh it "
+                                  "saw). 1 at 10 views: val480 CD 3.69 -> 3.45, CDN-mean 7.04 -> 6.87 (the third pass "
+                                  "on 6 of 10); the 480x360 test split's first 8 scenes CD 5.09 -> 4.88, CDN-mean 5.32 "
+                                  "-> 5.21 (on 5 of 8, one worse), for ~25% more time in the mean: off by default "
+                                  "(docs/history.md, session 90).", range=(0, 4))
     silhouette_iou_target: float = setting(0.98, "The silhouette IoU below which a view pulls harder in the next "
                                                  "round (silhouette_retries; issue 25's bar).", range=(0, 1))
     field_blur_px: float = setting(0.0, "Gaussian blur (sigma, pixels) of the masks' signed-distance fields the "

@@ -968,7 +968,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
                    config: RefineConfig | None = None, view_coverage: np.ndarray | None = None,
                    capture=None, normals=None, view_names=None) -> RefineResult:
     """The refine stage: `config.passes` passes of `refine_pass` (below, which says what the arguments
-    are; one more from `config.extra_pass_views` views on, and more up to `config.term_passes` while a
+    are; one more from `config.extra_pass_views` views on, and up to `config.term_passes` more while a
     pass keeps its normal term), each from the mesh the pass before kept, while a pass keeps its refined
     mesh. The result is the last pass's that kept its refined mesh,
     its report's input measures (`*_before`, the re-rendering errors' input values, `input_carve`)
@@ -981,7 +981,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
     later = dataclasses.replace(config, input_carve=False)  # the kept mesh was cut to the hull where it could be
     passes = config.passes + (0 < config.extra_pass_views <= len(masks))
     while results[-1].report["kept"] == "refined" and (
-            len(results) < passes or len(results) < config.term_passes and _term_kept(results[-1])):
+            len(results) < passes or len(results) < passes + config.term_passes and _term_kept(results[-1])):
         last = results[-1]  # measured by its pass: its silhouettes and re-rendering are the next pass's input's
         seed = {"input_casts": last.casts,
                 **({"input_rerendering": last.rerendering} if last.rerendering is not None else {})}

@@ -683,18 +683,20 @@ def test_the_keep_check_weighs_a_small_iou_loss_against_the_photos():
     assert worse_measures(iou_in, iou_in, w, (1.0, 1.01), 2, None, tol) == ["roughness 1 -> 1.01", "2 fold-over(s)"]
 
 
-@pytest.mark.parametrize("kept, term_kept, views, term_passes, passes_run", [
-    (["refined"] * 3, [True, True, True], 10, 3, 3),  # the second pass kept its normal term: one more
-    (["refined"] * 3, [True, False, True], 10, 3, 2),  # its term dropped: the next net sees about the same mesh
-    (["refined", "input", "refined"], [True, True, True], 10, 3, 2),  # it kept its input: the passes end
-    (["refined"] * 3, [True, True, True], 10, 2, 2),  # term_passes 2: passes alone decides
-    (["refined"] * 4, [True, True, False, True], 20, 4, 3),  # 20 views: three passes, the third's term dropped
-    (["refined"] * 4, [True, True, True, True], 20, 4, 4),
+@pytest.mark.parametrize("kept, term_kept, views, passes, term_passes, passes_run", [
+    (["refined"] * 3, [True, True, True], 10, 2, 1, 3),  # the second pass kept its normal term: one more
+    (["refined"] * 3, [True, False, True], 10, 2, 1, 2),  # its term dropped: the next net sees about the same mesh
+    (["refined", "input", "refined"], [True, True, True], 10, 2, 1, 2),  # it kept its input: the passes end
+    (["refined"] * 3, [True, True, True], 10, 2, 0, 2),  # off (the default): passes alone decides
+    (["refined"] * 3, [True, True, True], 10, 1, 0, 1),  # one pass asked for, one run
+    (["refined"] * 4, [True, True, True, True], 10, 1, 2, 3),  # at most term_passes more
+    (["refined"] * 4, [True, True, False, True], 20, 2, 1, 3),  # 20 views: three passes, the third's term dropped
+    (["refined"] * 4, [True, True, True, True], 20, 2, 1, 4),
 ])
-def test_a_pass_that_kept_its_normal_term_earns_one_more(monkeypatch, kept, term_kept, views, term_passes,
+def test_a_pass_that_kept_its_normal_term_earns_one_more(monkeypatch, kept, term_kept, views, passes, term_passes,
                                                          passes_run):
-    """`term_passes`: past `passes` (and the extra pass from 20 views), one more pass runs, up to
-    term_passes, while the pass before kept its refined mesh and its normal term's steps."""
+    """`term_passes`: past `passes` (and the extra pass from 20 views), up to term_passes more passes
+    run, each while the pass before kept its refined mesh and its normal term's steps."""
     import lookingglass.refine as refine
     from lookingglass.refine import RefineResult
 
@@ -711,7 +713,7 @@ def test_a_pass_that_kept_its_normal_term_earns_one_more(monkeypatch, kept, term
 
     monkeypatch.setattr(refine, "refine_pass", one_pass)
     result = refine_surface("input", None, np.zeros((views, 1, 1), bool), None,
-                            RefineConfig(passes=2, term_passes=term_passes))
+                            RefineConfig(passes=passes, term_passes=term_passes))
     assert len(calls) == passes_run
     assert [p["normal_term_kept"] for p in result.report["passes"]] == term_kept[:passes_run]
 
