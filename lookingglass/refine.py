@@ -760,7 +760,8 @@ class _NormalTarget:
 
 def _descend(x: np.ndarray, x0: np.ndarray, faces: np.ndarray, target, precondition,
              step: float, iterations: int, growth: float = 1.0) -> tuple[np.ndarray, list[float]]:
-    """Descend `target.loss` (the photometric or the normal term) from `x`: each step is the loss
+    """Descend `target.loss` (the photometric or the normal term; with grad=True it returns the loss and
+    a function giving its gradient, `_gradient`) from `x`: each step is the loss
     gradient smoothed by `precondition` (the silhouette solve's own system, so the step is smooth
     and keeps the rims on their masks), scaled so its 99th-percentile vertex moves `step`, then
     halved until the loss falls; the step length carries over, times `growth` after a step that
@@ -772,7 +773,7 @@ def _descend(x: np.ndarray, x0: np.ndarray, faces: np.ndarray, target, precondit
     value, g = target.loss(x, faces, grad=True)
     for _ in range(iterations):
         losses.append(value)
-        d = -precondition(g() if callable(g) else g)
+        d = -precondition(g())
         d /= max(float(np.percentile(np.linalg.norm(d, axis=1), 99)), 1e-12)
         while step > 1e-4:
             proposed = _unfolded(reference, x, x + step * d, faces)
@@ -1021,8 +1022,7 @@ def refine_surface(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, c
                          "rounds": len(r.report.get("silhouette_rounds", [None])), "seconds": r.report["seconds"],
                          **{k: r.report[k] for k in ("kept_why", "rerender_error") if k in r.report},
                          # whether the returned round kept its normal term's steps (absent where the term did not run)
-                         **({"normal_term_kept": bool(r.report["normal_term"]["kept"])}
-                            if "kept" in r.report.get("normal_term", {}) else {})}
+                         **({"normal_term_kept": _term_kept(r)} if "kept" in r.report.get("normal_term", {}) else {})}
                         for r in results]
     report["seconds"] = round(time.perf_counter() - start_time, 2)
     return dataclasses.replace(best, report=report)

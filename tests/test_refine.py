@@ -998,7 +998,7 @@ def test_the_descent_step_grows_back_after_a_step_that_fell():
     def loss(x, f, grad):
         u = float((x - x0)[:, 0].mean())
         bump = 10.0 if 0.28 < u < 0.32 else 0.0
-        return (u - 1.0) ** 2 + bump, np.tile([2 * (u - 1.0), 0.0, 0.0], (len(x), 1))
+        return (u - 1.0) ** 2 + bump, lambda: np.tile([2 * (u - 1.0), 0.0, 0.0], (len(x), 1))
 
     reached = {}
     for growth in (1.0, 2.0):
