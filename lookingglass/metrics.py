@@ -51,6 +51,7 @@ __all__ = [
     "normalization_transform",
     "shape_metrics",
     "normal_angle_errors",
+    "normal_angles",
     "render_error",
     "evaluate_mesh_files",
 ]
@@ -165,7 +166,10 @@ def _angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """
     cross = np.linalg.norm(np.cross(a, b), axis=-1)
     dot = (a * b).sum(axis=-1)
-    return np.degrees(np.arctan2(cross, dot))
+    angles = np.degrees(np.arctan2(cross, dot))
+    # atan2(0, 0) is 0: without this a missing normal (a mesh that misses the pixel) would score as exact
+    zero_a, zero_b = ~np.any(a != 0, axis=-1), ~np.any(b != 0, axis=-1)
+    return np.where(zero_a ^ zero_b, 90.0, angles)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -203,6 +207,12 @@ def _mask_bool(mask: Any, shape: tuple[int, ...]) -> np.ndarray:
     if not m.any():
         raise ValueError("mask is empty: no pixels to evaluate the metric over")
     return m
+
+
+def normal_angles(pred: Any, gt: Any) -> np.ndarray:
+    """Angles in degrees between rows of (..., 3) normals (numpy or torch; any length, a zero
+    vector scoring 90 degrees against a non-zero one): what every normal-error table pools."""
+    return _angles_deg(_to_numpy(pred), _to_numpy(gt))
 
 
 def normal_angle_errors(pred: Any, gt: Any, mask: Any, channel_axis: int = -1) -> dict[str, float]:

@@ -272,6 +272,22 @@ def test_normal_angle_mask_lengths_torch_and_channels_first():
     assert e3["median"] == pytest.approx(10.0, rel=1e-9)
 
 
+def test_a_missing_normal_scores_90_degrees():
+    """A mesh that misses a pixel the truth covers leaves a zero normal there: it must count as a
+    90-degree error, not as exact (atan2(0, 0) is 0). Zero against zero (neither has a hit) is 0."""
+    gt = np.tile([0.0, 0.0, 1.0], (4, 4, 1))
+    pred = gt.copy()
+    pred[0, :] = 0.0  # a quarter of the pixels missed
+    e = normal_angle_errors(pred, gt, np.ones((4, 4), bool))
+    assert e["mean"] == pytest.approx(22.5)
+    assert normal_angle_errors(gt, pred, np.ones((4, 4), bool))["mean"] == pytest.approx(22.5)
+    assert normal_angle_errors(pred[:1], gt[:1] * 0, np.ones((1, 4), bool))["mean"] == 0.0
+    # Table 1's pooled angles (normals/evaluate.py) go through the same function
+    from lookingglass.normals.evaluate import _angles
+    pooled = _angles(torch.from_numpy(pred).float(), torch.from_numpy(gt).float(), torch.ones(4, 4, dtype=torch.bool))
+    assert np.sort(pooled)[-4:].tolist() == [90.0] * 4 and pooled.mean() == pytest.approx(22.5)
+
+
 def test_normal_angle_errors_reject_bad_input():
     n = np.tile([0.0, 0.0, 1.0], (4, 4, 1))
     with pytest.raises(ValueError, match="mask is empty"):

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..metrics import normal_angles
 from ..parallel import map_scenes
 from ..progress import Reporter
 from ..render.tracer import trace_two_bounce
@@ -32,10 +33,10 @@ from .train import normal_targets
 
 
 def _angles(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> np.ndarray:
-    """Angles in degrees between (V,H,W,3) normal maps over mask (V,H,W)."""
-    a = torch.nn.functional.normalize(a[mask], dim=-1)
-    b = torch.nn.functional.normalize(b[mask], dim=-1)
-    return torch.rad2deg(torch.atan2(torch.linalg.cross(a, b, dim=-1).norm(dim=-1), (a * b).sum(-1))).cpu().numpy()
+    """Angles in degrees between (V,H,W,3) normal maps over mask (V,H,W) (a missing normal, zero,
+    scores 90 degrees: the hull's N2 where its path ends and the truth's goes on)."""
+    mask = mask.bool().to(a.device)
+    return normal_angles(a[mask].double().cpu(), b.to(a.device)[mask].double().cpu())
 
 
 @dataclass
