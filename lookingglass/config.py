@@ -24,6 +24,9 @@ RERENDER_WIDTH = 240  # half of a 480x360 capture: the error is stable to ~1e-3 
 # the validation set the refine stage kept the same meshes (docs/history.md, session 44); the error reads
 # ~0.015 higher (the photos are smoother than one sample a pixel).
 RERENDER_SAMPLES = 1
+# the normal stage's views' consensus (normals/consensus.py): a view's vote counts where its first hit lies
+# within this many pixel footprints of the point (1: the best of 0.5-1.5 on the validation set, session 91)
+VIEW_CONSENSUS_PX = 0.0
 STRATEGIES = ("AV", "NE", "RE")  # the feature mappings of the surface stage (lookingglass/points/features.py)
 
 
@@ -110,12 +113,15 @@ class LatentOptConfig:
 @dataclass
 class NormalStageConfig:
     """weights: a weights.safetensors path, or "" for the shipped weights of the view count
-    nearest `views` (0: the capture's view count). latent: the post-processing (iterations 0 = off)."""
+    nearest `views` (0: the capture's view count). latent: the post-processing (iterations 0 = off).
+    consensus_px: the views' consensus (normals/consensus.py; also in the refine stage's second pass)."""
 
     weights: str = setting("", "Normal-network weights (\"\": the shipped ones).")
     views: int = setting(0, "Use the shipped weights trained for this view count (5, 10, 20; the nearest that "
                             "ships); 0: the capture's view count.")
     latent: LatentOptConfig = field(default_factory=LatentOptConfig)
+    consensus_px: float = setting(VIEW_CONSENSUS_PX, "Make the predicted normals agree across the views that see the "
+                                  "same point (within this many pixel footprints; 0: each view's own).", range=(0, None))
 
     def __post_init__(self) -> None:
         if self.views < 0:

@@ -40,7 +40,9 @@ class NormalInputs:
     cameras: the views at H x W, capture (or dataset world) frame; vh_n1, vh_n2 (V,H,W,3)
     camera-frame normals of the hull's first and second hits; vh_valid (V,H,W) the hull's
     two-bounce path exists; factor: the exposure factor applied to the original radiance; ior:
-    the object's index of refraction."""
+    the object's index of refraction; vh_p1, vh_p2 (V,H,W,3) world-frame first and second hits and
+    vh_hit (V,H,W) where the first exists (from a capture; what the views' consensus,
+    normals/consensus.py, matches the views by; None from a dataset sample)."""
 
     image: Tensor
     mask: Tensor
@@ -51,6 +53,9 @@ class NormalInputs:
     vh_valid: Tensor
     factor: float
     ior: float = IOR_GLASS
+    vh_p1: Tensor | None = None
+    vh_p2: Tensor | None = None
+    vh_hit: Tensor | None = None
 
     @classmethod
     def from_capture(cls, images, masks, envmap, cameras: Cameras, ior: float, hull: trimesh.Trimesh,
@@ -69,7 +74,8 @@ class NormalInputs:
         cams = cameras.with_resolution(width, height).to(device)
         env = EnvironmentMap(envmap.float() * factor).resized(envmap_height)
         tb = trace_two_bounce(hull, cams, ior=ior, device=device)
-        return cls(image, mask, env, cams, tb.normal1, tb.normal2, tb.valid, factor, ior)
+        return cls(image, mask, env, cams, tb.normal1, tb.normal2, tb.valid, factor, ior, tb.point1, tb.point2,
+                   tb.mask)
 
     @classmethod
     def from_sample(cls, sample: dict, ior: float, device: str | torch.device = "cpu") -> NormalInputs:

@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from ..physics.camera import Cameras
+from .consensus import view_consensus
 from .inputs import NormalInputs, network_tensors
 from .latent import LatentOptConfig, optimize_latent
 from .model import NormalNet
@@ -74,7 +75,13 @@ def network_normals(net: NormalNet, x: NormalInputs,
     return n1.detach().permute(0, 2, 3, 1), n2.detach().permute(0, 2, 3, 1), gain
 
 
-def predict_normals(net: NormalNet, x: NormalInputs, latent: LatentOptConfig | None = None) -> NormalMaps:
-    """NNet's normals for the inputs (latent-optimized when `latent` has steps), re-rendered."""
+def predict_normals(net: NormalNet, x: NormalInputs, latent: LatentOptConfig | None = None,
+                    consensus_px: float = 0.0) -> NormalMaps:
+    """NNet's normals for the inputs (latent-optimized when `latent` has steps), made to agree
+    across views where `consensus_px` > 0 and the inputs carry the fed mesh's hits
+    (normals/consensus.py), re-rendered."""
     n1, n2, gain = network_normals(net, x, latent)
+    if consensus_px > 0 and x.vh_p1 is not None:
+        n1, n2 = view_consensus(n1, n2, x.cameras, x.vh_p1, x.vh_p2, x.vh_n1, x.vh_hit & x.mask,
+                                x.vh_valid & x.mask, consensus_px)
     return dataclasses.replace(render_normals(x, n1, n2), predicted_gain=gain)

@@ -20,7 +20,7 @@ import torch
 import trimesh
 
 from ..capture.images import write_image
-from ..config import LatentOptConfig, NormalStageConfig  # noqa: F401 (re-exported; its home is lookingglass.config)
+from ..config import VIEW_CONSENSUS_PX, LatentOptConfig, NormalStageConfig  # noqa: F401 (re-exported; its home is lookingglass.config)
 from ..fileio import write_atomic
 from ..viz import normal_map_rgb, tonemap
 from ..weights import NormalWeights
@@ -41,32 +41,33 @@ class NormalStageResult:
 
 
 def run_normal_stage(capture, mesh: trimesh.Trimesh, weights: NormalWeights, latent: LatentOptConfig | None,
-                     device: str = "cpu") -> NormalStageResult:
+                     device: str = "cpu", consensus_px: float = VIEW_CONSENSUS_PX) -> NormalStageResult:
     """capture: anything with images (V,H,W,3) linear, masks (V,H,W), envmap (He,2He,3), cameras
     and ior (a loaded `Capture`, or a dataset scene's `capture(i)`); mesh in the same frame, the one
     whose two-bounce normals the network corrects: the visual hull's, or the refine stage's own
-    mesh in its second pass. The networks and the rendering layer run on `device`."""
+    mesh in its second pass. The networks and the rendering layer run on `device`; consensus_px:
+    `NormalStageConfig.consensus_px`."""
     net = weights.net.to(device)
     x = NormalInputs.from_capture(capture.images, capture.masks, capture.envmap, capture.cameras, capture.ior,
                                   mesh, net.cfg.width, net.cfg.height, weights.envmap_height, device=device)
-    maps = predict_normals(net, x, latent)
+    maps = predict_normals(net, x, latent, consensus_px)
     hull_maps = render_normals(x, x.vh_n1, x.vh_n2)
     steps = [latent.iterations_n2, latent.iterations_both] if latent is not None else [0, 0]
     report = {"weights": str(weights.path), "network_size": [net.cfg.width, net.cfg.height],
               "render_error_vh": hull_maps.render_error(), "render_error": maps.render_error(),
-              "latent_iterations": steps}
+              "latent_iterations": steps, "consensus_px": consensus_px}
     return NormalStageResult(x, maps, hull_maps, report)
 
 
-def second_pass(capture, weights: NormalWeights,
-                device: str = "cpu") -> Callable[[trimesh.Trimesh], NormalStageResult | None]:
+def second_pass(capture, weights: NormalWeights, device: str = "cpu",
+                consensus_px: float = VIEW_CONSENSUS_PX) -> Callable[[trimesh.Trimesh], NormalStageResult | None]:
     """The refine stage's normal term's source: the normal stage on a mesh the refine stage hands
     it, without latent optimization (on val480 it changes the refined mesh by under 1%, CD 5.04 vs
     5.05, and costs ~6 s; docs/history.md, session 43). None, without running the net, when the
     net has no gain head (the term cannot tell where to trust it)."""
     if not weights.net.cfg.gain_head:
         return lambda mesh: None
-    return lambda mesh: run_normal_stage(capture, mesh, weights, None, device)
+    return lambda mesh: run_normal_stage(capture, mesh, weights, None, device, consensus_px)
 
 
 def write_normal_views(folder: Path, result: NormalStageResult) -> None:
