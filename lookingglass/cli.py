@@ -11,6 +11,7 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
+from .config import VIEW_CONSENSUS_PX
 from .cliconfig import CONFIG_VALUES, ConfigOptions, apply_config_flags, config_command
 from .errors import Interrupted, LookingGlassError
 from .physics.constants import IOR_GLASS, IOR_MAX, IOR_MIN, PAPER_CAPTURE_FOV_X_DEG, check_ior, check_ior_range
@@ -47,7 +48,7 @@ TRAIN_IOR_OPTIONS = ConfigOptions("ior_training")
 SFM_OPTIONS = ConfigOptions("capture", exclude=frozenset({"ball", "stop_after"}))
 BALL_OPTIONS = ConfigOptions("capture", exclude=frozenset({"sfm", "stop_after"}))
 CAPTURE_OPTIONS = ConfigOptions("capture")
-EVAL_SHAPES_OPTIONS = ConfigOptions("pipeline", only=frozenset({"surface.points", "refine"}),
+EVAL_SHAPES_OPTIONS = ConfigOptions("pipeline", only=frozenset({"surface.points", "normals.consensus_px", "refine"}),
                                     aliases={"surface.points": "--surface-points"})
 
 
@@ -541,6 +542,8 @@ def eval_normals(
     weights: list[str] = typer.Option(..., "--weights", help="VARIANT=PATH (basic, wr, wr+cv); repeat."),
     views: int = typer.Option(10, help="Views per scene."),
     latent_iterations: int = typer.Option(10, help="Latent-optimization steps per phase for wr+cv+op (0: skip)."),
+    consensus_px: float = typer.Option(VIEW_CONSENSUS_PX, min=0.0, help="The views' consensus for wr+cv+mv, as `reconstruct`'s "
+                                       "--normals.consensus-px (0: skip the row)."),
     max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
     ior: str = typer.Option("scene", "--ior", help=EVAL_IOR_HELP),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the settings, the rows and each "
@@ -568,11 +571,12 @@ def eval_normals(
     _outside_inputs(json_out, "file", [*_splits(data), *paths.values()])
     latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
     dataset = TransparentSceneDataset(data, "test", views=views)
-    table = evaluate_normals(dataset, paths, latent, max_scenes, Reporter(quiet=quiet), device, workers, ior=held)
+    table = evaluate_normals(dataset, paths, latent, max_scenes, Reporter(quiet=quiet), device, workers, ior=held,
+                             consensus_px=consensus_px)
     if json_out is not None:
         settings = {"data": str(Path(data).resolve()), "weights": {k: str(p.resolve()) for k, p in paths.items()},
                     "views": views, "latent_iterations": latent_iterations, "max_scenes": max_scenes,
-                    "ior": held if held is not None else "scene"}
+                    "ior": held if held is not None else "scene", "consensus_px": consensus_px}
         write_json(json_out, {"settings": settings, "rows": table.rows, "scenes": table.scenes})
     print(markdown_table(table.rows))
 
@@ -639,6 +643,7 @@ def eval_shapes(
                 "surface_points": surface.points,
                 "strategies": list(chosen), "latent_iterations": latent_iterations,
                 "point_weights": str(Path(point_weights).resolve()) if point_weights else None, "refine": refine,
+                "consensus_px": pipeline.normals.consensus_px,
                 # only when held: the JSON of an evaluation at each scene's own IoR resumes as before
                 **({"ior": held} if held is not None else {})}
     refine_flags = [k for k in ctx.meta.get(CONFIG_VALUES, {}) if k.startswith("refine.")]
@@ -665,7 +670,8 @@ def eval_shapes(
     save = (lambda partial: write_json(json_out, {"settings": settings, **partial})) if json_out else None
     result = evaluate_shapes(dataset, weights, chosen, latent, surface, max_scenes=max_scenes, reporter=reporter,
                              point_weights=point_weights, done=done, on_scene=save, device=device,
-                             workers=workers, refine=pipeline.refine if refine else None, ior=held)
+                             workers=workers, refine=pipeline.refine if refine else None, ior=held,
+                             consensus_px=pipeline.normals.consensus_px)
     if save is not None:
         save(result)
     print(markdown_table(result["rows"]))

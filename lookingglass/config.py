@@ -26,7 +26,7 @@ RERENDER_WIDTH = 240  # half of a 480x360 capture: the error is stable to ~1e-3 
 RERENDER_SAMPLES = 1
 # the normal stage's views' consensus (normals/consensus.py): a view's vote counts where its first hit lies
 # within this many pixel footprints of the point (1: the best of 0.5-1.5 on the validation set, session 91)
-VIEW_CONSENSUS_PX = 0.0
+VIEW_CONSENSUS_PX = 1.0
 STRATEGIES = ("AV", "NE", "RE")  # the feature mappings of the surface stage (lookingglass/points/features.py)
 
 

@@ -33,7 +33,7 @@ import trimesh
 from . import __version__
 from .capture.folder import check_output_folder
 from .capture.scene import SCENE_FILE, Capture, SceneSpec, load_capture
-from .config import STAGES, VIEW_CONSENSUS_PX, PipelineConfig, config_to_dict, parse_ior
+from .config import STAGES, PipelineConfig, config_to_dict, parse_ior
 from .errors import LookingGlassError, LookingGlassWarning
 from .fileio import staged_dir, write_atomic, write_json
 from .hull import VisualHull, carve_visual_hull
@@ -213,12 +213,12 @@ def _surface(hull: VisualHull, normals: NormalStageResult, config: PipelineConfi
 
 
 def refine_stage(capture: Capture, hull: VisualHull, surface: trimesh.Trimesh, weights: NormalWeights,
-                 config: RefineConfig, device: str = "cpu", consensus_px: float = VIEW_CONSENSUS_PX) -> RefineResult:
+                 config: RefineConfig, device: str = "cpu") -> RefineResult:
     """The refine stage as `reconstruct` runs it, without its files: `refine_surface` against the
     capture's masks and photos, its normal term fed by the normal net's second pass (the net run
     again on the mesh the silhouette iterations leave)."""
     return refine_surface(surface, hull, capture.masks, capture.cameras, config, capture=capture,
-                          normals=second_pass(capture, weights, device, consensus_px), view_names=capture.mask_names)
+                          normals=second_pass(capture, weights, device), view_names=capture.mask_names)
 
 
 @dataclasses.dataclass
@@ -240,8 +240,7 @@ def stage_meshes(capture: Capture, hull: VisualHull, weights: NormalWeights, poi
     device = config.resolved().device
     normals = run_normal_stage(capture, hull.mesh, weights, config.normals.latent, device, config.normals.consensus_px)
     surface = surface_from_normals(hull, normals.maps, config.surface, point_net)[0]
-    refined = (refine_stage(capture, hull, surface, weights, config.refine, device, config.normals.consensus_px)
-               if refine else None)
+    refined = refine_stage(capture, hull, surface, weights, config.refine, device) if refine else None
     return StageMeshes(normals, surface, refined)
 
 
@@ -251,8 +250,7 @@ def _refine(capture, hull: VisualHull, surface: trimesh.Trimesh, weights: Normal
     (the kept mesh, its re-rendering). Its normal term runs the normal stage again, on its own mesh."""
     with reporter.stage("refine", "refine (silhouettes + smoothness + the normal net's second pass)") as rec:
         write_mesh(out_dir / "surface.ply", surface)
-        result = refine_stage(capture, hull, surface, weights, config.refine, config.device,
-                              config.normals.consensus_px)
+        result = refine_stage(capture, hull, surface, weights, config.refine, config.device)
         views = sorted(set(np.linspace(0, capture.num_views - 1, min(4, capture.num_views)).round().astype(int)))
         silhouette_sheet(out_dir / "refine.png", capture.images, capture.masks, result.casts, views,
                          result.rerendering)

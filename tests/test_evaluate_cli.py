@@ -97,7 +97,7 @@ def test_eval_normals_prints_table_1_and_workers_match_one_process(two_scene_spl
         assert round(numbers["n1_median"], 2) == tables[2][row][0]
         per_scene = [s["rows"][row]["n1_median"] for s in saved["scenes"]]
         assert min(per_scene) <= numbers["n1_median"] <= max(per_scene), (row, per_scene)
-    assert list(tables[2]) == list(tables[1]) == ["vh", "wr+cv", "wr+cv+op", "gt"]
+    assert list(tables[2]) == list(tables[1]) == ["vh", "wr+cv", "wr+cv+op", "wr+cv+mv", "gt"]
     for row, numbers in tables[1].items():
         assert tables[2][row] == pytest.approx(numbers, abs=0.011), row
     truth = tables[1].pop("gt")  # the ground truth: no angle error; renders closer than the hull
@@ -246,6 +246,6 @@ def test_eval_normals_scores_a_split_rendered_larger_than_the_net(tmp_path):
     proc = run("eval-normals", "--data", root, "--weights", f"wr+cv={shipped_weights(10)[0]}",
                "--latent-iterations", 2, "--quiet")
     rows = table_rows(proc.stdout)
-    assert list(rows) == ["vh", "wr+cv", "wr+cv+op", "gt"]
+    assert list(rows) == ["vh", "wr+cv", "wr+cv+op", "wr+cv+mv", "gt"]
     assert rows["gt"][:4] == [0.0] * 4 and 0 < rows["gt"][4] < rows["vh"][4]
-    assert all(0 < v < 90 for numbers in (rows["vh"], rows["wr+cv"]) for v in numbers[:4])
+    assert all(0 < v < 90 for numbers in (rows["vh"], rows["wr+cv"], rows["wr+cv+mv"]) for v in numbers[:4])

@@ -59,15 +59,16 @@ def run_normal_stage(capture, mesh: trimesh.Trimesh, weights: NormalWeights, lat
     return NormalStageResult(x, maps, hull_maps, report)
 
 
-def second_pass(capture, weights: NormalWeights, device: str = "cpu",
-                consensus_px: float = VIEW_CONSENSUS_PX) -> Callable[[trimesh.Trimesh], NormalStageResult | None]:
+def second_pass(capture, weights: NormalWeights,
+                device: str = "cpu") -> Callable[[trimesh.Trimesh], NormalStageResult | None]:
     """The refine stage's normal term's source: the normal stage on a mesh the refine stage hands
     it, without latent optimization (on val480 it changes the refined mesh by under 1%, CD 5.04 vs
-    5.05, and costs ~6 s; docs/history.md, session 43). None, without running the net, when the
-    net has no gain head (the term cannot tell where to trust it)."""
+    5.05, and costs ~6 s; docs/history.md, session 43) and without the views' consensus (with it the
+    refined CAD meshes came out rounder: val480 CD 3.71 -> 3.92, docs/history.md, session 91). None,
+    without running the net, when the net has no gain head (the term cannot tell where to trust it)."""
     if not weights.net.cfg.gain_head:
         return lambda mesh: None
-    return lambda mesh: run_normal_stage(capture, mesh, weights, None, device, consensus_px)
+    return lambda mesh: run_normal_stage(capture, mesh, weights, None, device, consensus_px=0.0)
 
 
 def write_normal_views(folder: Path, result: NormalStageResult) -> None:

@@ -27,7 +27,7 @@ from ..metrics import shape_metrics
 from ..hull import VisualHull
 from ..normals.latent import LatentOptConfig
 from ..normals.predict import NormalMaps
-from ..normals.stage import run_normal_stage
+from ..normals.stage import VIEW_CONSENSUS_PX, run_normal_stage
 from ..parallel import map_scenes
 from ..pipeline import refine_stage
 from ..progress import Reporter
@@ -46,7 +46,8 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
                     max_scenes: int = 0, reporter: Reporter | None = None,
                     point_weights: Path | None = None, done: list[dict] | None = None,
                     on_scene: Callable[[dict], None] | None = None, device: str = "cpu",
-                    workers: int = 1, refine: RefineConfig | None = None, ior: float | None = None) -> dict:
+                    workers: int = 1, refine: RefineConfig | None = None, ior: float | None = None,
+                    consensus_px: float = VIEW_CONSENSUS_PX) -> dict:
     """Returns {"rows": {name: {metric: mean}}, "scenes": [{"index", name: {metric}}...]}.
 
     done: scene records of an earlier, interrupted run with the same settings (their scenes are
@@ -64,7 +65,8 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
     scenes = [record for record in (done or []) if record["index"] < n]
     finished = {record["index"] for record in scenes}
     todo = [i for i in range(n) if i not in finished]
-    args = (dataset, weights, point_weights, tuple(strategies), latent, surface or SurfaceConfig(), refine, ior)
+    args = (dataset, weights, point_weights, tuple(strategies), latent, surface or SurfaceConfig(), refine, ior,
+            consensus_px)
     records = map_scenes(_ShapeEvaluation, args, todo, workers, device)
     for record in reporter.track(records, total=len(todo), description="test scenes"):
         scenes.append(record)
@@ -78,10 +80,10 @@ class _ShapeEvaluation:
 
     def __init__(self, dataset, weights: Path | None, point_weights: Path | None, strategies: tuple[str, ...],
                  latent: LatentOptConfig | None, surface: SurfaceConfig, refine: RefineConfig | None = None,
-                 ior: float | None = None, device: str = "cpu"):
+                 ior: float | None = None, consensus_px: float = VIEW_CONSENSUS_PX, device: str = "cpu"):
         self.dataset, self.strategies, self.latent, self.surface, self.device = (dataset, strategies, latent,
                                                                                  surface, device)
-        self.refine, self.ior = refine, ior
+        self.refine, self.ior, self.consensus_px = refine, ior, consensus_px
         self.weights = load_normal_net(weights) if weights is not None else None
         self.point_net = load_point_net(point_weights) if point_weights is not None else None
         if self.weights is not None:
@@ -105,7 +107,7 @@ class _ShapeEvaluation:
                            mask)
         record["vh+gt-normals"] = _surface_metrics(hull, gt, truth, self._surface(self.strategies[0]), None)[1]
         if self.weights is not None:
-            normals = run_normal_stage(capture, hull.mesh, self.weights, self.latent, self.device)
+            normals = run_normal_stage(capture, hull.mesh, self.weights, self.latent, self.device, self.consensus_px)
             maps = normals.maps
             for strategy in self.strategies:
                 record[f"normals-{strategy}"] = _surface_metrics(hull, gt, maps, self._surface(strategy), None)[1]

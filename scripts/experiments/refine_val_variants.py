@@ -64,7 +64,8 @@ def main() -> None:
             path = shipped_weights(capture.num_views)[0] if args.normals == "shipped" else args.normals
             net = load_normal_net(path)
             latent = config.normals.latent if args.second_pass_latent == "config" else None
-            stage = lambda mesh, c=capture, n=net, l=latent: run_normal_stage(c, mesh, n, l)  # noqa: E731
+            # as `second_pass`: without the views' consensus
+            stage = lambda mesh, c=capture, n=net, l=latent: run_normal_stage(c, mesh, n, l, consensus_px=0.0)  # noqa: E731
         h, s = shape_metrics(hull.mesh, gt), shape_metrics(surface, gt)
         print(f"{name:15s} hull    CD {h['cd']:6.2f} CDN {h['cdn_mean']:6.2f} metro {h['metro']:6.2f} | "
               f"surface CD {s['cd']:6.2f} CDN {s['cdn_mean']:6.2f} vol {surface.volume / gt.volume:.3f}", flush=True)
