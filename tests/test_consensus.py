@@ -77,8 +77,9 @@ def test_independent_errors_shrink_and_a_poor_n2_is_mended(seen):
     # several views see most points: the mean of k independent 10-degree turns is ~10 / sqrt(k)
     # (6.0 here: ~2.7 views a point); two views would give 7.1
     assert np.median(e1) < 7.0
-    # N2's points are other views' first hits, whose votes (10 degrees off) outweigh its own 30
-    assert np.median(e2) < 15.0
+    # N2's points are other views' first hits, whose votes (10 degrees off) pull its own 30 (weighing
+    # OWN_N2_WEIGHT = 3 head-on votes) to ~20
+    assert np.median(e2) < 22.5
     # pixels no view votes for (the hull misses them: off the object) keep their prediction
     off = ~tb.mask
     assert torch.equal(f1[off], n1[off]) and torch.equal(f2[~tb.valid], n2[~tb.valid])

