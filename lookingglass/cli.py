@@ -11,8 +11,8 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
-from .config import VIEW_CONSENSUS_PX
 from .cliconfig import CONFIG_VALUES, ConfigOptions, apply_config_flags, config_command
+from .config import VIEW_CONSENSUS_PX
 from .errors import Interrupted, LookingGlassError
 from .physics.constants import IOR_GLASS, IOR_MAX, IOR_MIN, PAPER_CAPTURE_FOV_X_DEG, check_ior, check_ior_range
 from .presets import DEFAULT_PRESET, PRESET_NAMES
@@ -542,8 +542,8 @@ def eval_normals(
     weights: list[str] = typer.Option(..., "--weights", help="VARIANT=PATH (basic, wr, wr+cv); repeat."),
     views: int = typer.Option(10, help="Views per scene."),
     latent_iterations: int = typer.Option(10, help="Latent-optimization steps per phase for wr+cv+op (0: skip)."),
-    consensus_px: float = typer.Option(VIEW_CONSENSUS_PX, min=0.0, help="The views' consensus for wr+cv+mv, as `reconstruct`'s "
-                                       "--normals.consensus-px (0: skip the row)."),
+    consensus_px: float = typer.Option(VIEW_CONSENSUS_PX, min=0.0, help="The views' consensus for wr+cv+mv, as "
+                                       "`reconstruct`'s --normals.consensus-px (0: skip the row)."),
     max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
     ior: str = typer.Option("scene", "--ior", help=EVAL_IOR_HELP),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the settings, the rows and each "

@@ -114,14 +114,15 @@ class LatentOptConfig:
 class NormalStageConfig:
     """weights: a weights.safetensors path, or "" for the shipped weights of the view count
     nearest `views` (0: the capture's view count). latent: the post-processing (iterations 0 = off).
-    consensus_px: the views' consensus (normals/consensus.py; also in the refine stage's second pass)."""
+    consensus_px: the views' consensus (normals/consensus.py; not in the refine stage's second pass)."""
 
     weights: str = setting("", "Normal-network weights (\"\": the shipped ones).")
     views: int = setting(0, "Use the shipped weights trained for this view count (5, 10, 20; the nearest that "
                             "ships); 0: the capture's view count.")
     latent: LatentOptConfig = field(default_factory=LatentOptConfig)
-    consensus_px: float = setting(VIEW_CONSENSUS_PX, "Make the predicted normals agree across the views that see the "
-                                  "same point (within this many pixel footprints; 0: each view's own).", range=(0, None))
+    consensus_px: float = setting(VIEW_CONSENSUS_PX, "Make the predicted normals agree across the views that see "
+                                  "the same point (within this many pixel footprints; 0: each view's own).",
+                                  range=(0, None))
 
     def __post_init__(self) -> None:
         if self.views < 0:

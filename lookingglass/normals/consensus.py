@@ -3,7 +3,7 @@
 The net predicts each view's N1 and N2 on its own, yet a point of the surface has one normal, and
 most points are seen by several views: the second interface of one view is the first interface of
 another, seen head-on. So every pixel's normal is replaced by a weighted mean of the predictions
-at the same point of the fed mesh (the hull, or the refine stage's mesh in its second pass):
+at the same point of the fed mesh (the hull):
 
 - N1 at a pixel whose fed-mesh first hit is P: the N1 of every view whose own first hit at P's
   pixel lies within `tolerance_px` pixel footprints of P (the view sees P itself, not something in
@@ -38,7 +38,7 @@ def _votes(cameras: Cameras, point1: Tensor, seen1: Tensor, query: Tensor, query
     V, H, W = seen1.shape
     flat = query.reshape(-1, 3)
     ok = query_ok.reshape(-1)
-    half_width, _ = cameras._half_extent()
+    half_width = cameras.tan_half_fov_x
     out = []
     for j in range(V):  # one view at a time: V x (V H W) points, not V^2 H W at once
         xy, depth = cameras.select([j]).project(flat)
@@ -75,5 +75,6 @@ def view_consensus(n1: Tensor, n2: Tensor, cameras: Cameras, point1: Tensor, poi
 
     # N1: the own view's vote is among the V (a view's first hit is its own pixel's)
     fused1 = cams.world_to_camera(mean_of(p1, seen1, n1w, torch.zeros_like(facing))).to(dtype)
-    fused2 = cams.world_to_camera(mean_of(p2, seen2, cams.camera_to_world(n2.float()), torch.full_like(facing, OWN_N2_WEIGHT)))
+    own2 = torch.full_like(facing, OWN_N2_WEIGHT)
+    fused2 = cams.world_to_camera(mean_of(p2, seen2, cams.camera_to_world(n2.float()), own2))
     return torch.where(seen1[..., None], fused1, n1), torch.where(seen2[..., None], fused2.to(dtype), n2)

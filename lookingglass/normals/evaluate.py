@@ -1,8 +1,8 @@
 """The paper's Table 1 on a test split: N1/N2 angle errors and render error for the visual hull
 and each trained variant (basic, wr, wr+cv), plus wr+cv with latent optimization (wr+cv+op) and
 with the views' consensus (wr+cv+mv, normals/consensus.py: what `reconstruct`'s normal stage
-outputs), and the ground-truth normals' render error (row gt, a reference: what the two-bounce rendering layer
-misses even with the true normals).
+outputs), and the ground-truth normals' render error (row gt, a reference: what the two-bounce
+rendering layer misses even with the true normals).
 
 Statistics pool every pixel of every view of every scene: N1 over the object mask, N2 over the
 pixels whose true path has exactly two interfaces (the dataset's `valid`), render error over the
@@ -22,12 +22,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..config import VIEW_CONSENSUS_PX
 from ..metrics import normal_angles
 from ..parallel import map_scenes
 from ..progress import Reporter
 from ..render.tracer import trace_two_bounce
 from ..weights import DEFAULT_ENVMAP_HEIGHT, load_normal_net
-from ..config import VIEW_CONSENSUS_PX
 from .inputs import NormalInputs
 from .latent import LatentOptConfig
 from .predict import NormalMaps, predict_normals, render_normals
@@ -90,12 +90,12 @@ def evaluate_normals(dataset, weights: dict[str, Path], latent: LatentOptConfig 
                      consensus_px: float = VIEW_CONSENSUS_PX) -> NormalTable:
     """Table 1. weights maps a variant name (basic, wr, wr+cv) to its weights file; `wr+cv+op` is
     added when wr+cv is given and `latent` is not None, `wr+cv+mv` when wr+cv is given and
-    consensus_px > 0 (the consensus of wr+cv's normals, without latent optimization). Runs on `device`. workers: scenes evaluated
-    at once, each in its own process with one thread (0: one per core; CPU only); the pooled
-    statistics do not depend on it beyond float rounding. ior: the IoR the inputs, the rendering
-    layer and the latent optimization assume for every scene (the paper's "var. IoR" rows hold
-    1.4723 while the photos have others); None: each scene's own. The ground truth is the scene's
-    own either way."""
+    consensus_px > 0 (the consensus of wr+cv's normals, without latent optimization). Runs on
+    `device`. workers: scenes evaluated at once, each in its own process with one thread (0: one
+    per core; CPU only); the pooled statistics do not depend on it beyond float rounding. ior: the
+    IoR the inputs, the rendering layer and the latent optimization assume for every scene (the
+    paper's "var. IoR" rows hold 1.4723 while the photos have others); None: each scene's own. The
+    ground truth is the scene's own either way."""
     reporter = reporter or Reporter(quiet=True)
     n = len(dataset) if not max_scenes else min(max_scenes, len(dataset))
     per_scene = map_scenes(_NormalEvaluation, (dataset, dict(weights), latent, ior, consensus_px), list(range(n)),
@@ -107,7 +107,7 @@ def evaluate_normals(dataset, weights: dict[str, Path], latent: LatentOptConfig 
             rows.setdefault(name, NormalErrors()).merge(errors)
         scenes.append({"index": index, "ior": float(dataset.meta(index)["ior"]),
                        "rows": {name: errors.summary() for name, errors in scene_rows.items()}})
-    order = ["vh", *weights, "wr+cv+op", "wr+cv+mv", "gt"]  # the table's row order, whatever order the scenes finished in
+    order = ["vh", *weights, "wr+cv+op", "wr+cv+mv", "gt"]  # the row order, whatever order the scenes finished in
     return NormalTable({name: {**rows[name].summary(), "seconds_per_scene": rows[name].seconds / max(n, 1)}
                         for name in order if name in rows}, sorted(scenes, key=lambda s: s["index"]))
 
@@ -117,7 +117,8 @@ class _NormalEvaluation:
 
     def __init__(self, dataset, weights: dict[str, Path], latent: LatentOptConfig | None, ior: float | None = None,
                  consensus_px: float = 0.0, device: str = "cpu"):
-        self.dataset, self.latent, self.ior, self.consensus_px, self.device = dataset, latent, ior, consensus_px, device
+        self.dataset, self.latent, self.ior, self.device = dataset, latent, ior, device
+        self.consensus_px = consensus_px
         self.nets = {name: load_normal_net(path) for name, path in weights.items()}
         for w in self.nets.values():
             w.net.to(device)
@@ -153,7 +154,8 @@ class _NormalEvaluation:
         rows: dict[str, NormalErrors] = {}
         for name, w in self.nets.items():
             x = inputs(w.net.cfg.width, w.net.cfg.height, w.envmap_height)
-            runs = [(name, None, 0.0)] + ([("wr+cv+op", self.latent, 0.0)] if name == "wr+cv" and self.latent else [])
+            runs = [(name, None, 0.0)]
+            runs += [("wr+cv+op", self.latent, 0.0)] if name == "wr+cv" and self.latent else []
             runs += [("wr+cv+mv", None, self.consensus_px)] if name == "wr+cv" and self.consensus_px > 0 else []
             for row, latent, consensus_px in runs:
                 start = time.perf_counter()

@@ -20,7 +20,8 @@ import torch
 import trimesh
 
 from ..capture.images import write_image
-from ..config import VIEW_CONSENSUS_PX, LatentOptConfig, NormalStageConfig  # noqa: F401 (re-exported; its home is lookingglass.config)
+# LatentOptConfig and NormalStageConfig are re-exported here; their home is lookingglass.config
+from ..config import VIEW_CONSENSUS_PX, LatentOptConfig, NormalStageConfig  # noqa: F401
 from ..fileio import write_atomic
 from ..viz import normal_map_rgb, tonemap
 from ..weights import NormalWeights

@@ -22,12 +22,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..config import VIEW_CONSENSUS_PX
 from ..errors import LookingGlassError
 from ..metrics import shape_metrics
 from ..hull import VisualHull
 from ..normals.latent import LatentOptConfig
 from ..normals.predict import NormalMaps
-from ..normals.stage import VIEW_CONSENSUS_PX, run_normal_stage
+from ..normals.stage import run_normal_stage
 from ..parallel import map_scenes
 from ..pipeline import refine_stage
 from ..progress import Reporter
