@@ -195,7 +195,7 @@ class _Carver:
         ty = tx * (H / W)
         # Pixel pitch at unit depth (square pixels), folded into the fields so that field x depth
         # is in world units.
-        pitch = (2 * tx / W).to(torch.float32)
+        pitch = self.cams64.pixel_pitch.to(torch.float32)
         f = torch.from_numpy(fields) * pitch[:, None, None]
         self.fields = f.to(self.device).unsqueeze(1).contiguous()  # (V, 1, Hp, Wp)
         self.chunk = int(chunk_voxels)
@@ -408,7 +408,7 @@ def _view_coverage(volume: torch.Tensor, origin: np.ndarray, h: float, masks: np
     V, H, W = masks.shape
     centre = pts.mean(dim=0, keepdim=True)
     _, depth_c = cams.project(centre)  # (V, 1)
-    pitch = (2 * cams.tan_half_fov_x / W) * depth_c[:, 0].clamp_min(1e-12)  # world size of a pixel
+    pitch = cams.pixel_pitch * depth_c[:, 0].clamp_min(1e-12)  # world size of a pixel
     xy, depth = cams.project(pts)  # (V, N, 2), (V, N)
     cover = np.ones(V)
     for v in range(V):

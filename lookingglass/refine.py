@@ -308,7 +308,7 @@ def rim_vertices(vertices: np.ndarray, faces: np.ndarray, cams: Cameras, candida
     plane perpendicular to the ray) misses the mesh. Inner folds and occluded contour vertices fail."""
     caster = RayCaster.of(vertices, faces)
     origins = cams.origin.double().numpy()
-    pitch = 2 * cams.tan_half_fov_x.double().numpy() / cams.width  # pixel size per unit depth
+    pitch = cams.to(dtype=torch.float64).pixel_pitch.numpy()  # pixel size per unit depth
     forward = cams.forward.double().numpy()
     v_idx, n_idx = np.nonzero(candidates)
     rim = np.zeros_like(candidates)

@@ -46,6 +46,20 @@ def test_project_inverts_rays():
     torch.testing.assert_close(depth, (depth_along * cos).reshape(cams.num_views, -1))
 
 
+def test_pixel_pitch_is_a_pixel_at_unit_depth():
+    """Two points one pixel apart (x and x + 1) at forward depth d lie pitch x d apart: the size the
+    hull's fields, the refine stage's rims and the views' consensus give a pixel in the world."""
+    cams = _cameras()
+    y = torch.full((cams.num_views, 1), 20.5, dtype=torch.float64)
+    x0 = torch.full_like(y, 30.0)
+    for depth in (0.7, 3.0):
+        ends = []
+        for x in (x0, x0 + 1):
+            d = cams.directions_at(x, y)[:, 0]  # (V, 3)
+            ends.append(cams.origin + d * (depth / (d * cams.forward).sum(-1, keepdim=True)))
+        torch.testing.assert_close((ends[1] - ends[0]).norm(dim=-1), cams.pixel_pitch * depth)
+
+
 def test_camera_frame_convention():
     cams = _cameras()
     towards_camera = cams.world_to_camera(-cams.forward[:, None, :])

@@ -38,15 +38,14 @@ def _votes(cameras: Cameras, point1: Tensor, seen1: Tensor, query: Tensor, query
     V, H, W = seen1.shape
     flat = query.reshape(-1, 3)
     ok = query_ok.reshape(-1)
-    half_width = cameras.tan_half_fov_x
+    pitch = cameras.pixel_pitch
     out = []
     for j in range(V):  # one view at a time: V x (V H W) points, not V^2 H W at once
         xy, depth = cameras.select([j]).project(flat)
         x, y, depth = xy[0, :, 0].floor().long(), xy[0, :, 1].floor().long(), depth[0]
         inside = (x >= 0) & (x < W) & (y >= 0) & (y < H) & (depth > 0)
         xc, yc = x.clamp(0, W - 1), y.clamp(0, H - 1)
-        footprint = 2 * depth.abs() * half_width[j] / W
-        near = (point1[j][yc, xc] - flat).norm(dim=-1) < tolerance_px * footprint
+        near = (point1[j][yc, xc] - flat).norm(dim=-1) < tolerance_px * pitch[j] * depth.abs()
         sees = inside & ok & seen1[j][yc, xc] & near
         out.append((yc.reshape(V, H, W), xc.reshape(V, H, W), sees.reshape(V, H, W)))
     return out

@@ -74,6 +74,11 @@ class Cameras:
         return torch.rad2deg(2 * torch.atan(self.tan_half_fov_x))
 
     @property
+    def pixel_pitch(self) -> Tensor:
+        """(V,) a pixel's width per unit depth (square pixels): times a depth, its size in the world."""
+        return 2 * self.tan_half_fov_x / self.width
+
+    @property
     def right(self) -> Tensor:
         return self.basis[:, 0]
 
