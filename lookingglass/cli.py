@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -48,7 +49,8 @@ TRAIN_IOR_OPTIONS = ConfigOptions("ior_training")
 SFM_OPTIONS = ConfigOptions("capture", exclude=frozenset({"ball", "stop_after"}))
 BALL_OPTIONS = ConfigOptions("capture", exclude=frozenset({"sfm", "stop_after"}))
 CAPTURE_OPTIONS = ConfigOptions("capture")
-EVAL_SHAPES_OPTIONS = ConfigOptions("pipeline", only=frozenset({"surface.points", "normals.consensus_px", "refine"}),
+EVAL_SHAPES_OPTIONS = ConfigOptions("pipeline", only=frozenset({"surface.points", "normals.consensus_px",
+                                                                 "normals.mirror_average", "refine"}),
                                     aliases={"surface.points": "--surface-points"})
 
 
@@ -544,6 +546,8 @@ def eval_normals(
     latent_iterations: int = typer.Option(10, help="Latent-optimization steps per phase for wr+cv+op (0: skip)."),
     consensus_px: float = typer.Option(VIEW_CONSENSUS_PX, min=0.0, help="The views' consensus for wr+cv+mv, as "
                                        "`reconstruct`'s --normals.consensus-px (0: skip the row)."),
+    mirror_average: bool = typer.Option(True, "--mirror-average/--no-mirror-average", help="wr+cv+mv averages "
+                                        "with the mirror image, as `reconstruct`'s --normals.mirror-average."),
     max_scenes: int = typer.Option(0, help="Evaluate only the first N test scenes (0: all)."),
     ior: str = typer.Option("scene", "--ior", help=EVAL_IOR_HELP),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the settings, the rows and each "
@@ -572,11 +576,12 @@ def eval_normals(
     latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
     dataset = TransparentSceneDataset(data, "test", views=views)
     table = evaluate_normals(dataset, paths, latent, max_scenes, Reporter(quiet=quiet), device, workers, ior=held,
-                             consensus_px=consensus_px)
+                             consensus_px=consensus_px, mirror_average=mirror_average)
     if json_out is not None:
         settings = {"data": str(Path(data).resolve()), "weights": {k: str(p.resolve()) for k, p in paths.items()},
                     "views": views, "latent_iterations": latent_iterations, "max_scenes": max_scenes,
-                    "ior": held if held is not None else "scene", "consensus_px": consensus_px}
+                    "ior": held if held is not None else "scene", "consensus_px": consensus_px,
+                    "mirror_average": mirror_average}
         write_json(json_out, {"settings": settings, "rows": table.rows, "scenes": table.scenes})
     print(markdown_table(table.rows))
 
@@ -634,7 +639,7 @@ def eval_shapes(
     weights = weights or shipped_weights(views)[0]
     if weights is None:
         raise LookingGlassError(f"no weights ship for {views} views; pass --weights")
-    latent = LatentOptConfig(latent_iterations, latent_iterations) if latent_iterations > 0 else None
+    normals = dataclasses.replace(pipeline.normals, latent=LatentOptConfig(latent_iterations, latent_iterations))
     _eval_counts(max_scenes, workers, latent_iterations)
     dataset = TransparentSceneDataset(data, "test", views=views)
     point_weights = point_weights or shipped_weights(views, "points")[0]
@@ -643,7 +648,7 @@ def eval_shapes(
                 "surface_points": surface.points,
                 "strategies": list(chosen), "latent_iterations": latent_iterations,
                 "point_weights": str(Path(point_weights).resolve()) if point_weights else None, "refine": refine,
-                "consensus_px": pipeline.normals.consensus_px,
+                "consensus_px": normals.consensus_px, "mirror_average": normals.mirror_average,
                 # only when held: the JSON of an evaluation at each scene's own IoR resumes as before
                 **({"ior": held} if held is not None else {})}
     refine_flags = [k for k in ctx.meta.get(CONFIG_VALUES, {}) if k.startswith("refine.")]
@@ -668,10 +673,9 @@ def eval_shapes(
     if done:
         reporter.info(f"resuming from {json_out}: {len(done)} scene(s) done")
     save = (lambda partial: write_json(json_out, {"settings": settings, **partial})) if json_out else None
-    result = evaluate_shapes(dataset, weights, chosen, latent, surface, max_scenes=max_scenes, reporter=reporter,
+    result = evaluate_shapes(dataset, weights, chosen, normals, surface, max_scenes=max_scenes, reporter=reporter,
                              point_weights=point_weights, done=done, on_scene=save, device=device,
-                             workers=workers, refine=pipeline.refine if refine else None, ior=held,
-                             consensus_px=pipeline.normals.consensus_px)
+                             workers=workers, refine=pipeline.refine if refine else None, ior=held)
     if save is not None:
         save(result)
     print(markdown_table(result["rows"]))

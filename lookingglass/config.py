@@ -114,7 +114,9 @@ class LatentOptConfig:
 class NormalStageConfig:
     """weights: a weights.safetensors path, or "" for the shipped weights of the view count
     nearest `views` (0: the capture's view count). latent: the post-processing (iterations 0 = off).
-    consensus_px: the views' consensus (normals/consensus.py; not in the refine stage's second pass)."""
+    consensus_px: the views' consensus (normals/consensus.py; not in the refine stage's second pass).
+    mirror_average: the network's answer averaged with its answer for the capture's mirror image
+    (normals/predict.py)."""
 
     weights: str = setting("", "Normal-network weights (\"\": the shipped ones).")
     views: int = setting(0, "Use the shipped weights trained for this view count (5, 10, 20; the nearest that "
@@ -123,6 +125,8 @@ class NormalStageConfig:
     consensus_px: float = setting(VIEW_CONSENSUS_PX, "Make the predicted normals agree across the views that see "
                                   "the same point (within this many pixel footprints; 0: each view's own).",
                                   range=(0, None))
+    mirror_average: bool = setting(True, "Average the network's normals with its normals for the mirror image of "
+                                   "the capture (twice the network's time).")
 
     def __post_init__(self) -> None:
         if self.views < 0:

@@ -180,8 +180,7 @@ def _normals(capture, hull: VisualHull, weights: NormalWeights, trained_views: i
     latent = config.normals.latent
     title = "normals (network" + (" + latent optimization)" if latent.iterations_n2 + latent.iterations_both else ")")
     with reporter.stage("normals", title) as rec:
-        result = run_normal_stage(capture, hull.mesh, weights, config.normals.latent, config.device,
-                                  config.normals.consensus_px)
+        result = run_normal_stage(capture, hull.mesh, weights, config.normals, config.device)
         write_normal_views(out_dir / "normals", result)
         rec.update(result.report, trained_views=trained_views)
         if trained_views != requested:
@@ -238,7 +237,7 @@ def stage_meshes(capture: Capture, hull: VisualHull, weights: NormalWeights, poi
     point_net: a loaded point net (None: the surface without PNet). Raises what the stages raise (a
     failed Poisson: LookingGlassError)."""
     device = config.resolved().device
-    normals = run_normal_stage(capture, hull.mesh, weights, config.normals.latent, device, config.normals.consensus_px)
+    normals = run_normal_stage(capture, hull.mesh, weights, config.normals, device)
     surface = surface_from_normals(hull, normals.maps, config.surface, point_net)[0]
     refined = refine_stage(capture, hull, surface, weights, config.refine, device) if refine else None
     return StageMeshes(normals, surface, refined)

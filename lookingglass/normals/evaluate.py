@@ -87,10 +87,11 @@ class NormalTable:
 def evaluate_normals(dataset, weights: dict[str, Path], latent: LatentOptConfig | None = None,
                      max_scenes: int = 0, reporter: Reporter | None = None, device: str = "cpu",
                      workers: int = 1, ior: float | None = None,
-                     consensus_px: float = VIEW_CONSENSUS_PX) -> NormalTable:
+                     consensus_px: float = VIEW_CONSENSUS_PX, mirror_average: bool = True) -> NormalTable:
     """Table 1. weights maps a variant name (basic, wr, wr+cv) to its weights file; `wr+cv+op` is
     added when wr+cv is given and `latent` is not None, `wr+cv+mv` when wr+cv is given and
-    consensus_px > 0 (the consensus of wr+cv's normals, without latent optimization). Runs on
+    consensus_px > 0 (the consensus of wr+cv's normals, averaged with the mirror image's where
+    `mirror_average`, without latent optimization: `reconstruct`'s normal stage). Runs on
     `device`. workers: scenes evaluated at once, each in its own process with one thread (0: one
     per core; CPU only); the pooled statistics do not depend on it beyond float rounding. ior: the
     IoR the inputs, the rendering layer and the latent optimization assume for every scene (the
@@ -98,8 +99,8 @@ def evaluate_normals(dataset, weights: dict[str, Path], latent: LatentOptConfig 
     ground truth is the scene's own either way."""
     reporter = reporter or Reporter(quiet=True)
     n = len(dataset) if not max_scenes else min(max_scenes, len(dataset))
-    per_scene = map_scenes(_NormalEvaluation, (dataset, dict(weights), latent, ior, consensus_px), list(range(n)),
-                           workers, device)
+    per_scene = map_scenes(_NormalEvaluation, (dataset, dict(weights), latent, ior, consensus_px, mirror_average),
+                           list(range(n)), workers, device)
     rows: dict[str, NormalErrors] = {}
     scenes = []
     for index, scene_rows in reporter.track(per_scene, total=n, description="test scenes"):
@@ -116,9 +117,9 @@ class _NormalEvaluation:
     """What every scene's evaluation needs: the dataset, the networks (loaded once) and settings."""
 
     def __init__(self, dataset, weights: dict[str, Path], latent: LatentOptConfig | None, ior: float | None = None,
-                 consensus_px: float = 0.0, device: str = "cpu"):
+                 consensus_px: float = 0.0, mirror_average: bool = False, device: str = "cpu"):
         self.dataset, self.latent, self.ior, self.device = dataset, latent, ior, device
-        self.consensus_px = consensus_px
+        self.consensus_px, self.mirror_average = consensus_px, mirror_average
         self.nets = {name: load_normal_net(path) for name, path in weights.items()}
         for w in self.nets.values():
             w.net.to(device)
@@ -154,12 +155,13 @@ class _NormalEvaluation:
         rows: dict[str, NormalErrors] = {}
         for name, w in self.nets.items():
             x = inputs(w.net.cfg.width, w.net.cfg.height, w.envmap_height)
-            runs = [(name, None, 0.0)]
-            runs += [("wr+cv+op", self.latent, 0.0)] if name == "wr+cv" and self.latent else []
-            runs += [("wr+cv+mv", None, self.consensus_px)] if name == "wr+cv" and self.consensus_px > 0 else []
-            for row, latent, consensus_px in runs:
+            runs = [(name, None, 0.0, False)]
+            runs += [("wr+cv+op", self.latent, 0.0, False)] if name == "wr+cv" and self.latent else []
+            if name == "wr+cv" and self.consensus_px > 0:
+                runs += [("wr+cv+mv", None, self.consensus_px, self.mirror_average)]
+            for row, latent, consensus_px, mirror_average in runs:
                 start = time.perf_counter()
-                maps = predict_normals(w.net, x, latent, consensus_px)
+                maps = predict_normals(w.net, x, latent, consensus_px, mirror_average)
                 rows.setdefault(row, NormalErrors()).add(maps, truth_at(w.net.cfg.width, w.net.cfg.height),
                                                          time.perf_counter() - start)
         # the hull's and the truth's rows where the (first) net is scored, so their ratios compare

@@ -90,6 +90,17 @@ class NormalInputs:
         return cls(channels_last["image"], mask, EnvironmentMap(s["envmap"].permute(1, 2, 0).float()), cams,
                    channels_last["vh_n1"], channels_last["vh_n2"], s["vh_valid"].bool(), float(s["factor"]), ior)
 
+    def mirrored(self) -> NormalInputs:
+        """The same capture in the world mirrored in the plane x = 0, every image flipped left to
+        right (`Cameras.mirrored`): what the views would see of the mirror-image object under the
+        mirror-image light. Exact, no tracing: the hull's hits and normals are mirrored as they are."""
+        flip = self.vh_n1.new_tensor([-1.0, 1.0, 1.0])  # a camera-frame vector's x, and a world point's
+        mirror = lambda t: None if t is None else t.flip(2)  # noqa: E731  (V, H, W, ...): W reversed
+        vector = lambda t: None if t is None else t.flip(2) * flip  # noqa: E731
+        return NormalInputs(mirror(self.image), mirror(self.mask), self.envmap.mirrored(), self.cameras.mirrored(),
+                            vector(self.vh_n1), vector(self.vh_n2), mirror(self.vh_valid), self.factor, self.ior,
+                            vector(self.vh_p1), vector(self.vh_p2), mirror(self.vh_hit))
+
     @property
     def num_views(self) -> int:
         return int(self.mask.shape[0])

@@ -59,11 +59,19 @@ def render_normals(x: NormalInputs, n1: Tensor, n2: Tensor) -> NormalMaps:
     return NormalMaps(x.cameras, n1, n2, error, tir, x.mask, comparable(out.image))
 
 
-def network_normals(net: NormalNet, x: NormalInputs,
-                    latent: LatentOptConfig | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
+def network_normals(net: NormalNet, x: NormalInputs, latent: LatentOptConfig | None = None,
+                    mirror_average: bool = False) -> tuple[Tensor, Tensor, Tensor | None]:
     """(n1, n2) (V,H,W,3) camera frame from NNet, latent-optimized when `latent` has steps, and
     the gain head's predicted gains over the hull's normals (V,H,W,2) degrees (None when the net
-    has no head)."""
+    has no head). With `mirror_average`, the mean of the net's answers for the capture and for its
+    mirror image (`NormalInputs.mirrored`, mapped back)."""
+    if mirror_average:
+        n1, n2, gain = network_normals(net, x, latent)
+        m1, m2, mgain = network_normals(net, x.mirrored(), latent)
+        flip = n1.new_tensor([-1.0, 1.0, 1.0])
+        n1 = torch.nn.functional.normalize(n1 + m1.flip(2) * flip, dim=-1)
+        n2 = torch.nn.functional.normalize(n2 + m2.flip(2) * flip, dim=-1)
+        return n1, n2, None if gain is None else (gain + mgain.flip(2)) / 2
     inputs, cost_volume = network_tensors(x, net.cfg)
     if latent is not None and latent.iterations_n2 + latent.iterations_both > 0:
         n1, n2, _, gain = optimize_latent(net, inputs, cost_volume, x.envmap, x.image, x.mask, x.cameras, latent,
@@ -76,11 +84,11 @@ def network_normals(net: NormalNet, x: NormalInputs,
 
 
 def predict_normals(net: NormalNet, x: NormalInputs, latent: LatentOptConfig | None = None,
-                    consensus_px: float = 0.0) -> NormalMaps:
+                    consensus_px: float = 0.0, mirror_average: bool = False) -> NormalMaps:
     """NNet's normals for the inputs (latent-optimized when `latent` has steps), made to agree
     across views where `consensus_px` > 0 and the inputs carry the fed mesh's hits
     (normals/consensus.py), re-rendered."""
-    n1, n2, gain = network_normals(net, x, latent)
+    n1, n2, gain = network_normals(net, x, latent, mirror_average)
     if consensus_px > 0 and x.vh_p1 is not None:
         n1, n2 = view_consensus(n1, n2, x.cameras, x.vh_p1, x.vh_p2, x.vh_n1, x.vh_hit & x.mask,
                                 x.vh_valid & x.mask, consensus_px)

@@ -21,12 +21,16 @@ import trimesh
 
 from ..capture.images import write_image
 # LatentOptConfig and NormalStageConfig are re-exported here; their home is lookingglass.config
-from ..config import VIEW_CONSENSUS_PX, LatentOptConfig, NormalStageConfig  # noqa: F401
+from ..config import LatentOptConfig, NormalStageConfig  # noqa: F401
 from ..fileio import write_atomic
 from ..viz import normal_map_rgb, tonemap
 from ..weights import NormalWeights
 from .inputs import NormalInputs
 from .predict import NormalMaps, predict_normals, render_normals
+
+
+# the refine stage's second pass: no latent steps, no consensus (see `second_pass`)
+SECOND_PASS = NormalStageConfig(consensus_px=0.0, mirror_average=False)
 
 
 @dataclass
@@ -41,22 +45,25 @@ class NormalStageResult:
     report: dict
 
 
-def run_normal_stage(capture, mesh: trimesh.Trimesh, weights: NormalWeights, latent: LatentOptConfig | None,
-                     device: str = "cpu", consensus_px: float = VIEW_CONSENSUS_PX) -> NormalStageResult:
+def run_normal_stage(capture, mesh: trimesh.Trimesh, weights: NormalWeights, config: NormalStageConfig | None = None,
+                     device: str = "cpu") -> NormalStageResult:
     """capture: anything with images (V,H,W,3) linear, masks (V,H,W), envmap (He,2He,3), cameras
     and ior (a loaded `Capture`, or a dataset scene's `capture(i)`); mesh in the same frame, the one
     whose two-bounce normals the network corrects: the visual hull's, or the refine stage's own
-    mesh in its second pass. The networks and the rendering layer run on `device`; consensus_px:
-    `NormalStageConfig.consensus_px`."""
+    mesh in its second pass. config: the latent optimization, the views' consensus and the mirror
+    average (its `weights` and `views` are the caller's to resolve; None: the defaults). The
+    networks and the rendering layer run on `device`."""
+    config = config or NormalStageConfig()
     net = weights.net.to(device)
     x = NormalInputs.from_capture(capture.images, capture.masks, capture.envmap, capture.cameras, capture.ior,
                                   mesh, net.cfg.width, net.cfg.height, weights.envmap_height, device=device)
-    maps = predict_normals(net, x, latent, consensus_px)
+    latent = config.latent
+    maps = predict_normals(net, x, latent, config.consensus_px, config.mirror_average)
     hull_maps = render_normals(x, x.vh_n1, x.vh_n2)
-    steps = [latent.iterations_n2, latent.iterations_both] if latent is not None else [0, 0]
     report = {"weights": str(weights.path), "network_size": [net.cfg.width, net.cfg.height],
               "render_error_vh": hull_maps.render_error(), "render_error": maps.render_error(),
-              "latent_iterations": steps, "consensus_px": consensus_px}
+              "latent_iterations": [latent.iterations_n2, latent.iterations_both],
+              "consensus_px": config.consensus_px, "mirror_average": config.mirror_average}
     return NormalStageResult(x, maps, hull_maps, report)
 
 
@@ -69,7 +76,7 @@ def second_pass(capture, weights: NormalWeights,
     without running the net, when the net has no gain head (the term cannot tell where to trust it)."""
     if not weights.net.cfg.gain_head:
         return lambda mesh: None
-    return lambda mesh: run_normal_stage(capture, mesh, weights, None, device, consensus_px=0.0)
+    return lambda mesh: run_normal_stage(capture, mesh, weights, SECOND_PASS, device)
 
 
 def write_normal_views(folder: Path, result: NormalStageResult) -> None:

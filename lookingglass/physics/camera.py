@@ -113,6 +113,15 @@ class Cameras:
         center = torch.as_tensor(center, dtype=self.origin.dtype, device=self.origin.device)
         return Cameras((self.origin - center) / scale, self.basis, self.tan_half_fov_x, self.width, self.height)
 
+    def mirrored(self) -> "Cameras":
+        """The cameras of the world mirrored in the plane x = 0, each image flipped left to right, so
+        the views stay right-handed: pixel (x, y) of a mirrored view sees the mirror image of what
+        pixel (W - x, y) of the original sees, and a camera-frame vector (x, y, z) becomes (-x, y, z)."""
+        flip = self.origin.new_tensor([-1.0, 1.0, 1.0])
+        basis = self.basis * flip  # every row's world x mirrored
+        basis = torch.stack([-basis[:, 0], basis[:, 1], basis[:, 2]], dim=1)  # the image's right flipped
+        return Cameras(self.origin * flip, basis, self.tan_half_fov_x, self.width, self.height)
+
     def look_at_params(self) -> dict:
         """origin, target (one unit ahead), up and fov_x_deg as nested lists, for scene.json."""
         return dict(origin=self.origin.tolist(), target=(self.origin + self.forward).tolist(),

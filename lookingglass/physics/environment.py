@@ -67,6 +67,11 @@ class EnvironmentMap:
         out = torch.nn.functional.interpolate(img, size=(height, 2 * height), mode=mode, **kw)
         return EnvironmentMap(out[0].permute(1, 2, 0).contiguous())
 
+    def mirrored(self) -> "EnvironmentMap":
+        """The light of the world mirrored in the plane x = 0: E'(x, y, z) = E(-x, y, z). u -> 1 - u,
+        and with texel-centred columns that is the columns reversed, exactly."""
+        return EnvironmentMap(self.radiance.flip(1))
+
     def lookup(self, directions: Tensor) -> Tensor:
         """Radiance arriving from unit directions (..., 3) (the direction light travels *from*,
         i.e. where the ray escapes to). Bilinear, differentiable in the directions.

@@ -3,8 +3,8 @@ made from normal predictions (points on the hull + feature mapping + Poisson).
 
 Rows: `vh` (the hull itself); `vh+gt-normals` (the hull's points with the ground-truth first-hit
 normals mapped by the chosen strategy: what mapping + Poisson can reach with perfect normals);
-per strategy, `normals-<RE|NE|AV>` with the network's normals (latent-optimized when `latent` is
-given); `pnet-<strategy>` when point-network weights are given (its training strategy); and
+per strategy, `normals-<RE|NE|AV>` with the network's normals (the normal stage as `normals`
+configures it); `pnet-<strategy>` when point-network weights are given (its training strategy); and
 `refined` when a refine config is given: that surface through `reconstruct`'s refine stage (the mesh
 it keeps). Metrics are DESIGN.md's (CD x1e4, Metro x1e3, CDN-mean/med in degrees), on the ground
 truth's unit-sphere scale; with the refine row, `vh`, the pnet row and `refined` also carry the
@@ -22,11 +22,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..config import VIEW_CONSENSUS_PX
+from ..config import NormalStageConfig
 from ..errors import LookingGlassError
 from ..metrics import shape_metrics
 from ..hull import VisualHull
-from ..normals.latent import LatentOptConfig
 from ..normals.predict import NormalMaps
 from ..normals.stage import run_normal_stage
 from ..parallel import map_scenes
@@ -43,12 +42,11 @@ PHOTO_METRICS = ("rerender", "iou_min")
 
 
 def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] = ("RE",),
-                    latent: LatentOptConfig | None = None, surface: SurfaceConfig | None = None,
+                    normals: NormalStageConfig | None = None, surface: SurfaceConfig | None = None,
                     max_scenes: int = 0, reporter: Reporter | None = None,
                     point_weights: Path | None = None, done: list[dict] | None = None,
                     on_scene: Callable[[dict], None] | None = None, device: str = "cpu",
-                    workers: int = 1, refine: RefineConfig | None = None, ior: float | None = None,
-                    consensus_px: float = VIEW_CONSENSUS_PX) -> dict:
+                    workers: int = 1, refine: RefineConfig | None = None, ior: float | None = None) -> dict:
     """Returns {"rows": {name: {metric: mean}}, "scenes": [{"index", name: {metric}}...]}.
 
     done: scene records of an earlier, interrupted run with the same settings (their scenes are
@@ -66,8 +64,8 @@ def evaluate_shapes(dataset, weights: Path | None, strategies: tuple[str, ...] =
     scenes = [record for record in (done or []) if record["index"] < n]
     finished = {record["index"] for record in scenes}
     todo = [i for i in range(n) if i not in finished]
-    args = (dataset, weights, point_weights, tuple(strategies), latent, surface or SurfaceConfig(), refine, ior,
-            consensus_px)
+    args = (dataset, weights, point_weights, tuple(strategies), normals or NormalStageConfig(),
+            surface or SurfaceConfig(), refine, ior)
     records = map_scenes(_ShapeEvaluation, args, todo, workers, device)
     for record in reporter.track(records, total=len(todo), description="test scenes"):
         scenes.append(record)
@@ -80,11 +78,11 @@ class _ShapeEvaluation:
     """What every scene's evaluation needs: the dataset, the networks (loaded once) and settings."""
 
     def __init__(self, dataset, weights: Path | None, point_weights: Path | None, strategies: tuple[str, ...],
-                 latent: LatentOptConfig | None, surface: SurfaceConfig, refine: RefineConfig | None = None,
-                 ior: float | None = None, consensus_px: float = VIEW_CONSENSUS_PX, device: str = "cpu"):
-        self.dataset, self.strategies, self.latent, self.surface, self.device = (dataset, strategies, latent,
+                 normals: NormalStageConfig, surface: SurfaceConfig, refine: RefineConfig | None = None,
+                 ior: float | None = None, device: str = "cpu"):
+        self.dataset, self.strategies, self.normals, self.surface, self.device = (dataset, strategies, normals,
                                                                                  surface, device)
-        self.refine, self.ior, self.consensus_px = refine, ior, consensus_px
+        self.refine, self.ior = refine, ior
         self.weights = load_normal_net(weights) if weights is not None else None
         self.point_net = load_point_net(point_weights) if point_weights is not None else None
         if self.weights is not None:
@@ -108,7 +106,7 @@ class _ShapeEvaluation:
                            mask)
         record["vh+gt-normals"] = _surface_metrics(hull, gt, truth, self._surface(self.strategies[0]), None)[1]
         if self.weights is not None:
-            normals = run_normal_stage(capture, hull.mesh, self.weights, self.latent, self.device, self.consensus_px)
+            normals = run_normal_stage(capture, hull.mesh, self.weights, self.normals, self.device)
             maps = normals.maps
             for strategy in self.strategies:
                 record[f"normals-{strategy}"] = _surface_metrics(hull, gt, maps, self._surface(strategy), None)[1]

@@ -1,9 +1,11 @@
-"""The normal stage's predicted N1 / N2 medians with and without the views' consensus, per scene and per
-family, against the hull's (the 90-degree rule for a missing normal, as `validate`'s tables).
+"""The normal stage's predicted N1 / N2 medians with and without the views' consensus and the mirror
+average, per scene and per family, against the hull's (the 90-degree rule for a missing normal, as
+`validate`'s tables).
 
 Usage, after `lookingglass validate --data DATA --out RUNS` (it reads the hulls that run left):
-    .venv/bin/python scripts/experiments/consensus_normals.py DATA RUNS [0,1]
-The last argument lists the `--normals.consensus-px` values to compare (0: each view's own prediction).
+    .venv/bin/python scripts/experiments/consensus_normals.py DATA RUNS [0,1,0m,1m]
+The last argument lists the `--normals.consensus-px` values to compare (0: each view's own prediction),
+each with an `m` for `--normals.mirror-average` on (without it: off).
 """
 import json
 import sys
@@ -13,12 +15,12 @@ import numpy as np
 
 from lookingglass.capture.scene import load_capture
 from lookingglass.metrics import load_mesh, normal_angle_errors
-from lookingglass.normals.stage import run_normal_stage
+from lookingglass.normals.stage import NormalStageConfig, run_normal_stage
 from lookingglass.render.tracer import trace_two_bounce
 from lookingglass.weights import load_normal_net, shipped_weights
 
 root, runs = Path(sys.argv[1]), Path(sys.argv[2])
-values = [float(v) for v in (sys.argv[3] if len(sys.argv) > 3 else "0,1").split(",")]
+values = (sys.argv[3] if len(sys.argv) > 3 else "0,1").split(",")
 index = json.loads((root / "index.json").read_text())["shapes"]
 rows = []
 for name in sorted(index):
@@ -26,16 +28,18 @@ for name in sorted(index):
     hull, truth_mesh = load_mesh(runs / name / "visual_hull.ply"), load_mesh(root / name / "ground_truth.ply")
     weights = load_normal_net(shipped_weights(capture.num_views)[0])
     row = {"name": name, "family": index[name]}
-    for px in values:
-        stage = run_normal_stage(capture, hull, weights, None, "cpu", px)
+    for value in values:
+        px = float(value.rstrip("m"))
+        stage = run_normal_stage(capture, hull, weights, NormalStageConfig(consensus_px=px,
+                                                                           mirror_average=value.endswith("m")))
         truth = trace_two_bounce(truth_mesh, stage.maps.cameras, ior=capture.ior)
         first = stage.maps.mask & truth.mask
         second = first & truth.valid
         if "n1_hull" not in row:
             row["n1_hull"] = normal_angle_errors(stage.inputs.vh_n1, truth.normal1, first)["median"]
             row["n2_hull"] = normal_angle_errors(stage.inputs.vh_n2, truth.normal2, second)["median"]
-        row[f"n1_{px:g}"] = normal_angle_errors(stage.maps.n1, truth.normal1, first)["median"]
-        row[f"n2_{px:g}"] = normal_angle_errors(stage.maps.n2, truth.normal2, second)["median"]
+        row[f"n1_{value}"] = normal_angle_errors(stage.maps.n1, truth.normal1, first)["median"]
+        row[f"n2_{value}"] = normal_angle_errors(stage.maps.n2, truth.normal2, second)["median"]
     rows.append(row)
     print(" ".join(f"{k} {v:.2f}" if isinstance(v, float) else str(v) for k, v in row.items()), flush=True)
 keys = [k for k in rows[0] if k[:3] in ("n1_", "n2_")]

@@ -40,7 +40,7 @@ def main() -> None:
     for name in names:
         cap = load_capture(data / name / "scene")
         hull = carve_visual_hull(cap.masks, cap.cameras, cfg.hull)
-        stage = run_normal_stage(cap, hull, weights, cfg.normals.latent)
+        stage = run_normal_stage(cap, hull, weights, cfg.normals)
         x, maps = stage.inputs, stage.maps
         truth = trace_two_bounce(load_mesh(data / name / "ground_truth.ply"), x.cameras, ior=cap.ior)
         valid = x.mask & x.vh_valid & truth.mask & truth.valid & ~maps.tir

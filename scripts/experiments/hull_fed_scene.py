@@ -18,7 +18,7 @@ def hull_fed_scene(data: Path, runs: Path, name: str, cfg: PipelineConfig) -> Si
     cap = load_capture(data / name / "scene")
     hull = carve_visual_hull(cap.masks, cap.cameras, cfg.hull)
     gt = load_mesh(data / name / "ground_truth.ply")
-    stage = run_normal_stage(cap, hull.mesh, load_normal_net(shipped_weights(cap.num_views)[0]), cfg.normals.latent)
+    stage = run_normal_stage(cap, hull.mesh, load_normal_net(shipped_weights(cap.num_views)[0]), cfg.normals)
     return SimpleNamespace(cap=cap, gt=gt, hull=hull, stage=stage, x=stage.inputs, maps=stage.maps,
                            truth=trace_two_bounce(gt, stage.inputs.cameras, ior=cap.ior),
                            surf=load_mesh(runs / name / "surface.ply"))

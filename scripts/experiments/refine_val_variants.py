@@ -11,6 +11,7 @@ stage's normal term runs as in `reconstruct`: the normal net (--normals: a weigh
 shipped one for the view count; "none": no normal term) run again on the mesh the silhouette iterations leave.
 """
 import argparse
+import dataclasses
 import json
 import time
 import warnings
@@ -24,7 +25,7 @@ from lookingglass.config import PipelineConfig
 from lookingglass.configio import config_from_dict
 from lookingglass.hull import carve_visual_hull
 from lookingglass.metrics import load_mesh, shape_metrics
-from lookingglass.normals.stage import run_normal_stage
+from lookingglass.normals.stage import SECOND_PASS, run_normal_stage
 from lookingglass.refine import RefineConfig, refine_surface
 from lookingglass.weights import load_normal_net, shipped_weights
 
@@ -63,9 +64,10 @@ def main() -> None:
         if args.normals != "none":  # as reconstruct: the net run again on the mesh the silhouettes leave
             path = shipped_weights(capture.num_views)[0] if args.normals == "shipped" else args.normals
             net = load_normal_net(path)
-            latent = config.normals.latent if args.second_pass_latent == "config" else None
             # as `second_pass`: without the views' consensus
-            stage = lambda mesh, c=capture, n=net, l=latent: run_normal_stage(c, mesh, n, l, consensus_px=0.0)  # noqa: E731
+            passed = SECOND_PASS if args.second_pass_latent == "none" else dataclasses.replace(
+                SECOND_PASS, latent=config.normals.latent)
+            stage = lambda mesh, c=capture, n=net, p=passed: run_normal_stage(c, mesh, n, p)  # noqa: E731
         h, s = shape_metrics(hull.mesh, gt), shape_metrics(surface, gt)
         print(f"{name:15s} hull    CD {h['cd']:6.2f} CDN {h['cdn_mean']:6.2f} metro {h['metro']:6.2f} | "
               f"surface CD {s['cd']:6.2f} CDN {s['cdn_mean']:6.2f} vol {surface.volume / gt.volume:.3f}", flush=True)

@@ -15,7 +15,7 @@ from lookingglass.capture.scene import load_capture
 from lookingglass.metrics import load_mesh, shape_metrics
 from lookingglass.hull import carve_visual_hull
 from lookingglass.config import PipelineConfig
-from lookingglass.normals.stage import run_normal_stage
+from lookingglass.normals.stage import SECOND_PASS, run_normal_stage
 from lookingglass.render.tracer import trace_two_bounce
 from lookingglass.weights import load_normal_net, shipped_weights
 warnings.simplefilter("ignore")
@@ -23,15 +23,15 @@ root, out = Path(sys.argv[1]), Path(sys.argv[2])
 steps, rule = int(sys.argv[4]), sys.argv[5]
 outer = int(sys.argv[6]) if len(sys.argv) > 6 else 0
 cfg = PipelineConfig()
-latent = None if "nolatent" in sys.argv[7:] else cfg.normals.latent
+# as the refine stage's second pass (normals/stage.py), with the normal stage's latent steps unless nolatent
+stage_config = SECOND_PASS if "nolatent" in sys.argv[7:] else dataclasses.replace(SECOND_PASS, latent=cfg.normals.latent)
 angle = lambda a, b: torch.rad2deg(torch.acos((a * b).sum(-1).clamp(-1, 1)))  # noqa: E731
 totals = []
 for name in sys.argv[3].split(","):
     cap = load_capture(root / name / "scene"); gt = load_mesh(root / name / "ground_truth.ply")
     hull = carve_visual_hull(cap.masks, cap.cameras, cfg.hull)
     mesh = load_mesh(out / name / "mesh.ply")
-    stage = run_normal_stage(cap, mesh, load_normal_net(shipped_weights(cap.num_views)[0]),
-                             latent)
+    stage = run_normal_stage(cap, mesh, load_normal_net(shipped_weights(cap.num_views)[0]), stage_config)
     x, maps = stage.inputs, stage.maps
     share = {}
 
