@@ -28,8 +28,7 @@ from ..weights import NormalWeights
 from .inputs import NormalInputs
 from .predict import NormalMaps, predict_normals, render_normals
 
-
-# the refine stage's second pass: no latent steps, no consensus (see `second_pass`)
+# the refine stage's second pass: no latent steps, no consensus, no mirror average (see `second_pass`)
 SECOND_PASS = NormalStageConfig(consensus_px=0.0, mirror_average=False)
 
 
@@ -72,8 +71,10 @@ def second_pass(capture, weights: NormalWeights,
     """The refine stage's normal term's source: the normal stage on a mesh the refine stage hands
     it, without latent optimization (on val480 it changes the refined mesh by under 1%, CD 5.04 vs
     5.05, and costs ~6 s; docs/history.md, session 43) and without the views' consensus (with it the
-    refined CAD meshes came out rounder: val480 CD 3.71 -> 3.92, docs/history.md, session 91). None,
-    without running the net, when the net has no gain head (the term cannot tell where to trust it)."""
+    refined CAD meshes came out rounder: val480 CD 3.71 -> 3.92, docs/history.md, session 91) or the
+    mirror average (from the same surfaces CD 3.71 -> 3.70, Metro 9.54 -> 10.07, ~2.5 s a scene more;
+    session 92). None, without running the net, when the net has no gain head (the term cannot tell
+    where to trust it)."""
     if not weights.net.cfg.gain_head:
         return lambda mesh: None
     return lambda mesh: run_normal_stage(capture, mesh, weights, SECOND_PASS, device)

@@ -24,8 +24,8 @@ import torch
 
 from ..config import NormalStageConfig
 from ..errors import LookingGlassError
-from ..metrics import shape_metrics
 from ..hull import VisualHull
+from ..metrics import shape_metrics
 from ..normals.predict import NormalMaps
 from ..normals.stage import run_normal_stage
 from ..parallel import map_scenes
