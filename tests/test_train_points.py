@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from lookingglass.config import PipelineConfig
 from lookingglass.data.dataset import DatasetConfig, generate_dataset
 from lookingglass.data.torch_dataset import TransparentSceneDataset
 from lookingglass.errors import LookingGlassError
@@ -22,7 +23,7 @@ from lookingglass.normals.train import TrainConfig, train_normals
 from lookingglass.points.features import FEATURE_COLUMNS, NUM_FEATURES, PAPER_FEATURES
 from lookingglass.points.model import PointNetConfig
 from lookingglass.weights import load_normal_net, load_point_net, shipped_weights
-from lookingglass.points.train import PointTrainConfig, prepare_features, train_points
+from lookingglass.points.train import TRAINING_FEATURES, PointTrainConfig, prepare_features, train_points
 from lookingglass.presets import preset
 
 
@@ -70,7 +71,7 @@ def test_training_caches_features_lowers_loss_and_ships_weights(tiny, tmp_path):
     train_points(ds, run, _config(epochs=4), normals)
     assert [p.stat().st_mtime_ns for p in cached] == mtimes
     cached[1].unlink()
-    summary = prepare_features(ds, run, _config(epochs=4), load_normal_net(normals).net)
+    summary = prepare_features(ds, run, _config(epochs=4), load_normal_net(normals))
     assert summary["made"] == [1] and summary["skipped"] == 2
 
     with pytest.raises(LookingGlassError, match="different config"):
@@ -170,9 +171,20 @@ def test_init_starts_from_given_weights(tiny, tmp_path):
                      normals)
     # A cache made before the silhouette columns existed is refused, not mixed.
     source = base / "features" / "source.json"
+    recorded = json.loads(source.read_text())
+    assert recorded["consensus_px"] == TRAINING_FEATURES.consensus_px and recorded["mirror_average"]
     source.write_text(json.dumps({k: v for k, v in json.loads(source.read_text()).items() if k != "feature_columns"}))
     with pytest.raises(LookingGlassError, match="feature columns"):
         train_points(ds, base, narrow, normals)
+    # So is one made by another normal stage (before session 92's: each view's own prediction).
+    source.write_text(json.dumps({**{k: v for k, v in recorded.items() if k != "mirror_average"}}))
+    with pytest.raises(LookingGlassError, match="normal stage"):
+        train_points(ds, base, narrow, normals)
+
+
+def test_training_features_come_from_reconstructs_normal_stage():
+    """PNet learns from what `reconstruct` feeds it: the features' normal stage is the pipeline's default."""
+    assert TRAINING_FEATURES == PipelineConfig().normals
 
 
 def test_view_loss_targets(tiny, tmp_path):

@@ -6,14 +6,14 @@ Two phases, both resumable:
 
 1. Feature preparation, once per training scene, cached as RUN_DIR/features/<scene>.npz
    (written atomically; a scene whose file exists is skipped, so an interrupted run picks up
-   where it stopped). Per scene: the trained normal net predicts N1, N2 for every view (a plain
-   forward pass, *no latent optimization*: its hundreds of rendering-layer steps per scene would
-   cost many times the rest of training; PNet learns to correct the net's raw predictions), the
-   rendering layer gives their per-pixel rendering error and TIR mask, `cfg.net.num_points`
-   points are sampled on the visual hull and `map_features` maps the predictions onto them with
-   the config's strategy; then the ground-truth targets the loss needs. Under torchrun each
-   process prepares every world-th scene. RUN_DIR/features/source.json records the normal
-   weights' SHA-256: a cache made with other normal weights is refused, not mixed.
+   where it stopped). Per scene: `reconstruct`'s normal stage with its defaults (`run_normal_stage`
+   with `TRAINING_FEATURES`: the mirror average and the views' consensus, *no latent optimization*,
+   the scene as a capture with its stored hull, as the evaluations run it) gives N1, N2 for every
+   view, their per-pixel rendering error and TIR mask; `cfg.net.num_points` points are sampled on
+   the visual hull and `map_features` maps the predictions onto them with the config's strategy;
+   then the ground-truth targets the loss needs. Under torchrun each process prepares every
+   world-th scene. RUN_DIR/features/source.json records the normal weights' SHA-256 and the normal
+   stage's settings: a cache made with others is refused, not mixed.
 2. Training: one scene per step, PNet(features) -> offset, normal; p = p̃ + offset; the loss
    LOSSES[config.loss] with the paper's λ1 = 200, λ2 = 5.
 
@@ -54,12 +54,11 @@ from .. import training
 from ..errors import LookingGlassError
 from ..fileio import sha256_file, write_atomic
 from ..hull import VisualHull
-from ..normals.inputs import NormalInputs
-from ..normals.model import NormalNet
-from ..normals.predict import predict_normals
+from ..config import NormalStageConfig
+from ..normals.stage import run_normal_stage
 from ..progress import Reporter
 from ..threads import torch_threads
-from ..weights import load_normal_net
+from ..weights import NormalWeights, load_normal_net
 from .config import PointTrainConfig
 from .features import FEATURE_COLUMNS, NUM_FEATURES, map_features, sample_hull_points
 from .losses import LOSSES, PointLoss, unseen_weights, view_targets
@@ -83,6 +82,9 @@ TARGET_KEYS: dict[str, tuple[str, ...]] = {
     "view": ("nearest_points", "nearest_normals", "view_points", "view_normals", "view_valid"),
 }
 FEATURE_DIR = "features"
+# The normal stage that makes the features: `reconstruct`'s default, so PNet learns from what it is
+# fed (the shipped point nets, trained before session 92, learned from each view's own prediction).
+TRAINING_FEATURES = NormalStageConfig()
 
 
 # ---- one scene -> cached arrays ---------------------------------------------------------------------
@@ -97,18 +99,18 @@ def _closest_points(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarr
     return closest.astype(np.float32), normal.astype(np.float32)
 
 
-def scene_point_data(normal_net: NormalNet, sample: dict, gt_mesh: trimesh.Trimesh, hull: VisualHull,
+def scene_point_data(normal_weights: NormalWeights, capture, gt_mesh: trimesh.Trimesh, hull: VisualHull,
                      config: PointTrainConfig, seed: int, device: str = "cpu") -> dict[str, np.ndarray]:
     """PNet's input features and the loss's targets for one training scene.
 
-    normal_net: the trained normal net (eval mode; a plain forward, no latent optimization).
-    sample: the dataset item (data/torch_dataset.py keys; views and resolution as the net's).
+    normal_weights: the trained normal net (eval mode), run as `reconstruct`'s normal stage
+    (`TRAINING_FEATURES`). capture: the scene as a capture (`dataset.capture(i, config.ior)`);
     gt_mesh: the ground truth, dataset world frame; hull: the scene's visual hull with its
     normalization (`dataset.hull(i)`). seed: point sampling.
     Returns float32 numpy arrays (bool for view_valid) in the hull-normalized frame: "features"
     (N, NUM_FEATURES) and TARGET_KEYS[config.loss] (see the module docstring).
     """
-    maps = predict_normals(normal_net, NormalInputs.from_sample(sample, config.ior, device)).to("cpu")
+    maps = run_normal_stage(capture, hull.mesh, normal_weights, TRAINING_FEATURES, device).maps.to("cpu")
     unit_hull = hull.mesh_normalized()
     gt = trimesh.Trimesh(hull.normalize_points(gt_mesh.vertices), np.asarray(gt_mesh.faces), process=False,
                          validate=False)
@@ -151,38 +153,40 @@ def load_scene_arrays(path: Path, loss: str) -> dict[str, np.ndarray]:
 
 
 def _check_source(run_dir: Path, normals: Path, views: int, rank: int) -> str:
-    """Record (or compare) the normal weights the cache is made from; returns their SHA-256."""
+    """Record (or compare) the normal weights and normal stage the cache is made from; returns the
+    weights' SHA-256."""
     digest = sha256_file(normals)
-    source = {"normals_sha256": digest, "views": views, "feature_columns": NUM_FEATURES}
+    source = {"normals_sha256": digest, "views": views, "feature_columns": NUM_FEATURES,
+              "consensus_px": TRAINING_FEATURES.consensus_px, "mirror_average": TRAINING_FEATURES.mirror_average}
     training.record_or_compare(run_dir / FEATURE_DIR / "source.json", source, rank,
-                               "the cached point features were made with other normal weights, views "
-                               "or feature columns",
+                               "the cached point features were made with other normal weights, views, "
+                               "feature columns or normal stage",
                                "use a new --out or the same --normals (a cache from before the silhouette "
-                               "columns must be remade: delete RUN_DIR/features)")
+                               "columns or session 92's normal stage must be remade: delete RUN_DIR/features)")
     return digest
 
 
-def prepare_features(dataset, run_dir: str | os.PathLike, config: PointTrainConfig, normal_net: NormalNet,
+def prepare_features(dataset, run_dir: str | os.PathLike, config: PointTrainConfig, normal_weights: NormalWeights,
                      device: str = "cpu", reporter: Reporter | None = None, rank: int = 0,
                      world: int = 1) -> dict:
     """Make the missing RUN_DIR/features/<scene>.npz of the first `config.max_scenes` items
     (all for 0); process `rank` of `world` makes the items i with i % world == rank.
-    dataset: scenes with `dataset[i]`, `meshes(i)` -> (gt, hull) and `meta(i)` (its "hull"
-    entry: center, scale), views and resolution matching `normal_net.cfg`.
+    dataset: scenes with `capture(i, ior)`, `meshes(i)` -> (gt, hull), `hull(i)`, views and
+    resolution matching `normal_weights.net.cfg`.
     Returns {"made": [indices], "skipped": count, "seconds": float} for this process."""
     reporter = reporter or Reporter(quiet=True)
     n = len(dataset) if not config.max_scenes else min(config.max_scenes, len(dataset))
     mine = [i for i in range(n) if i % world == rank]
     todo = [i for i in mine if not feature_path(run_dir, dataset, i).exists()]
     start = time.perf_counter()
-    cfg = normal_net.cfg
+    cfg = normal_weights.net.cfg
     for i in reporter.track(todo, description="point features"):
-        sample = dataset[i]
-        V, _, H, W = sample["image"].shape
+        capture = dataset.capture(i, config.ior)
+        V, H, W = capture.masks.shape
         if (V, H, W) != (cfg.num_views, cfg.height, cfg.width):
             raise LookingGlassError(f"scene {_scene_name(dataset, i)} has {V} views of {W}x{H}, the normal net takes "
                                     f"{cfg.num_views} of {cfg.width}x{cfg.height}")
-        arrays = scene_point_data(normal_net, sample, dataset.meshes(i)[0], dataset.hull(i), config,
+        arrays = scene_point_data(normal_weights, capture, dataset.meshes(i)[0], dataset.hull(i), config,
                                   seed=config.seed * 1_000_003 + i, device=device)
         write_atomic(feature_path(run_dir, dataset, i), lambda tmp: np.savez(tmp, **arrays))
     return {"made": todo, "skipped": len(mine) - len(todo), "seconds": round(time.perf_counter() - start, 2)}
@@ -227,14 +231,15 @@ def train_points(dataset, run_dir: str | os.PathLike, config: PointTrainConfig, 
     session = training.TrainingSession(run_dir, config, device, reporter)  # refuses another config first
     device = session.device  # under torchrun on GPUs: this process's own
     with torch_threads(threads if not device.startswith("cuda") else -1):
-        normal_net = load_normal_net(normals).net.to(device)
-        digest = _check_source(run_dir, normals, normal_net.cfg.num_views, session.rank)
-        summary = prepare_features(dataset, run_dir, config, normal_net, device, session.reporter, session.rank,
+        normal_weights = load_normal_net(normals)
+        normal_weights.net.to(device)
+        digest = _check_source(run_dir, normals, normal_weights.net.cfg.num_views, session.rank)
+        summary = prepare_features(dataset, run_dir, config, normal_weights, device, session.reporter, session.rank,
                                    session.world)
         if summary["made"]:
             session.reporter.info(f"point features: made {len(summary['made'])}, reused {summary['skipped']} "
                                   f"({summary['seconds']:.1f} s)")
-        del normal_net
+        del normal_weights
         session.barrier()
         keys = ("features", *TARGET_KEYS[config.loss])
         xyz, mapped_normal = FEATURE_COLUMNS["point"], FEATURE_COLUMNS["normal"]
