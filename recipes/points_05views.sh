@@ -24,6 +24,9 @@
 #   run's, which wrote the weights); here it runs 16.
 # - Run 4 made a fresh feature cache; this recipe hard-links run 3's for the first 613 scenes (the same normal
 #   weights and scenes: saves ~9 min) and makes the 986 new ones.
+# - Since session 92 train-points makes the features with `reconstruct`'s normal stage (the mirror average and
+#   the views' consensus: points/train.py TRAINING_FEATURES); the recorded runs used each view's own prediction.
+#   Features take ~3x as long (~3.4 s a scene a process on the machine of session 92).
 # - The weights need not be bit-identical (torch 2.13.0+cpu then).
 set -euo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/_lib.sh"

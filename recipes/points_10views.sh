@@ -20,6 +20,9 @@
 #   step passes that --max-scenes, and the data grows just before the first step that needs it.
 # - Run 6 was also named runs/points10n (on a fresh machine); here runs/points10n2. It made a fresh feature
 #   cache; this recipe hard-links run 5's (the same normal weights and scenes: saves ~24 min).
+# - Since session 92 train-points makes the features with `reconstruct`'s normal stage (the mirror average and
+#   the views' consensus: points/train.py TRAINING_FEATURES); the recorded runs used each view's own prediction.
+#   Features take ~3x as long (~3.4 s a scene a process on the machine of session 92).
 # - The weights need not be bit-identical (torch 2.13.0+cpu then).
 set -euo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/_lib.sh"

@@ -7,6 +7,8 @@
 # features, ~5 min of training; the second run (step 2) as much again.
 # Provenance: lookingglass/weights/points_20views.json. Usage: bash recipes/points_20views.sh (settings:
 # recipes/_lib.sh). Steps are skipped when their weights exist and resume when interrupted.
+# Since session 92 train-points makes the features with `reconstruct`'s normal stage (the mirror average and the
+# views' consensus: points/train.py TRAINING_FEATURES); the recorded runs used each view's own prediction.
 set -euo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/_lib.sh"
 
