@@ -94,9 +94,8 @@ class NormalInputs:
         """The same capture in the world mirrored in the plane x = 0, every image flipped left to
         right (`Cameras.mirrored`): what the views would see of the mirror-image object under the
         mirror-image light. Exact, no tracing: the hull's hits and normals are mirrored as they are."""
-        flip = self.vh_n1.new_tensor([-1.0, 1.0, 1.0])  # a camera-frame vector's x, and a world point's
         mirror = lambda t: None if t is None else t.flip(2)  # noqa: E731  (V, H, W, ...): W reversed
-        vector = lambda t: None if t is None else t.flip(2) * flip  # noqa: E731
+        vector = lambda t: None if t is None else mirror_vector_maps(t)  # noqa: E731
         return NormalInputs(mirror(self.image), mirror(self.mask), self.envmap.mirrored(), self.cameras.mirrored(),
                             vector(self.vh_n1), vector(self.vh_n2), mirror(self.vh_valid), self.factor, self.ior,
                             vector(self.vh_p1), vector(self.vh_p2), mirror(self.vh_hit))
@@ -111,6 +110,12 @@ class NormalInputs:
         layer, compared with the photo."""
         out = render_layer(self.envmap, self.vh_n1, self.vh_n2, self.cameras, ior=self.ior)
         return error_map(self.image, out.image, self.mask), out.tir & self.mask
+
+
+def mirror_vector_maps(maps: Tensor) -> Tensor:
+    """(V, H, W, 3) camera-frame vectors or world points per pixel, in the mirrored world of
+    `NormalInputs.mirrored` (and back: it is its own inverse): columns reversed, x negated."""
+    return maps.flip(2) * maps.new_tensor([-1.0, 1.0, 1.0])
 
 
 def network_tensors(x: NormalInputs, cfg: NormalNetConfig) -> tuple[Tensor, Tensor | None]:

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from ..physics.camera import Cameras
 from .consensus import view_consensus
-from .inputs import NormalInputs, network_tensors
+from .inputs import NormalInputs, mirror_vector_maps, network_tensors
 from .latent import LatentOptConfig, optimize_latent
 from .model import NormalNet
 from .render_layer import comparable, prediction_error_maps
@@ -68,9 +68,8 @@ def network_normals(net: NormalNet, x: NormalInputs, latent: LatentOptConfig | N
     if mirror_average:
         n1, n2, gain = network_normals(net, x, latent)
         m1, m2, mgain = network_normals(net, x.mirrored(), latent)
-        flip = n1.new_tensor([-1.0, 1.0, 1.0])
-        n1 = torch.nn.functional.normalize(n1 + m1.flip(2) * flip, dim=-1)
-        n2 = torch.nn.functional.normalize(n2 + m2.flip(2) * flip, dim=-1)
+        n1 = torch.nn.functional.normalize(n1 + mirror_vector_maps(m1), dim=-1)
+        n2 = torch.nn.functional.normalize(n2 + mirror_vector_maps(m2), dim=-1)
         return n1, n2, None if gain is None else (gain + mgain.flip(2)) / 2
     inputs, cost_volume = network_tensors(x, net.cfg)
     if latent is not None and latent.iterations_n2 + latent.iterations_both > 0:
