@@ -15,7 +15,7 @@ import torch
 import trimesh
 
 from lookingglass.data.rigs import paper_rig
-from lookingglass.normals.inputs import NormalInputs
+from lookingglass.normals.inputs import NormalInputs, mirror_vector_maps
 from lookingglass.normals.predict import network_normals
 from lookingglass.physics.environment import EnvironmentMap
 from lookingglass.physics.optics import IOR_GLASS
@@ -116,3 +116,58 @@ def test_the_mirror_average_answers_the_mirror_image_with_the_mirror_image(scene
     mirrored_own = network_normals(net, x.mirrored(), None)[0].flip(2) * flip
     apart = torch.rad2deg(torch.acos((own * mirrored_own).sum(-1).clamp(-1, 1)))[mask]
     assert float(apart.median()) > 0.3
+
+
+def test_mirrored_targets_are_the_mirror_worlds_truth(scene):
+    """`train-normals --mirror-augment` trains on the mirror image of a scene: its targets (the
+    dataset's (V,3,H,W) layout) must be the true normals of the mirrored object seen by the mirrored
+    cameras, and the loss of the hull's normals must not change (angles are kept)."""
+    from lookingglass.normals.train import mirror_targets, normal_loss
+
+    mesh, x = scene
+    truth = trace_two_bounce(mesh, x.cameras, ior=IOR_GLASS)
+    channels_first = lambda n: n.permute(0, 3, 1, 2)  # noqa: E731
+    t = dict(n1=channels_first(truth.normal1), n2=channels_first(truth.normal2), mask=truth.mask,
+             n2_valid=truth.valid & truth.mask)
+    m = mirror_targets(t)
+    mirrored_mesh = mesh.copy()
+    mirrored_mesh.apply_transform(MIRROR)
+    traced = trace_two_bounce(mirrored_mesh, x.cameras.mirrored(), ior=IOR_GLASS)
+    assert int((traced.mask != m["mask"]).sum()) <= 5 and int((traced.valid != m["n2_valid"]).sum()) <= 20
+    both = traced.mask & m["mask"]
+    torch.testing.assert_close(channels_first(traced.normal1).permute(0, 2, 3, 1)[both],
+                               m["n1"].permute(0, 2, 3, 1)[both], atol=1e-5, rtol=0)
+    second = traced.valid & m["n2_valid"]
+    torch.testing.assert_close(traced.normal2[second], m["n2"].permute(0, 2, 3, 1)[second], atol=1e-4, rtol=0)
+    convex = trace_two_bounce(mesh.convex_hull, x.cameras, ior=IOR_GLASS)  # a hull that is not the truth
+    hull = (channels_first(convex.normal1), channels_first(convex.normal2))
+    mirrored_hull = tuple(channels_first(mirror_vector_maps(n)) for n in (convex.normal1, convex.normal2))
+    for kind in ("l2", "angle"):
+        before = float(normal_loss(*hull, t, kind))
+        assert before > 0.01
+        assert float(normal_loss(*mirrored_hull, m, kind)) == pytest.approx(before, rel=1e-5)
+
+
+def test_mirror_augment_mirrors_some_steps_reproducibly(tmp_path, monkeypatch):
+    """About half the steps train on the mirror image, the same steps in every run of a seed."""
+    from lookingglass.data.dataset import DatasetConfig, generate_dataset
+    from lookingglass.data.torch_dataset import TransparentSceneDataset
+    from lookingglass.normals.model import cpu_config
+    from lookingglass.normals.train import TrainConfig, train_normals
+
+    generate_dataset(tmp_path / "data", 4, views=5, split="train", seed=0,
+                     config=DatasetConfig(width=64, height=48, envmap_height=32, samples_per_axis=1), workers=1)
+    ds = TransparentSceneDataset(tmp_path / "data", "train")
+    calls = []
+    original = NormalInputs.mirrored
+    monkeypatch.setattr(NormalInputs, "mirrored", lambda self: calls.append(1) or original(self))
+    net = cpu_config(width=64, height=48, num_views=5, enc_channels=(8, 16, 32), fnet_channels=8)
+    counts = []
+    for run in ("a", "b"):
+        calls.clear()
+        train_normals(ds, tmp_path / run, TrainConfig(net=net, epochs=2, lr=1e-3, mirror_augment=True))
+        counts.append(len(calls))
+    assert 0 < counts[0] < 8 and counts[0] == counts[1]  # 8 steps
+    a = load_normal_net(tmp_path / "a" / "weights.safetensors").net.state_dict()
+    b = load_normal_net(tmp_path / "b" / "weights.safetensors").net.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)

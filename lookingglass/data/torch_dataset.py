@@ -11,9 +11,11 @@ it is). target_mean is 0.5; with augment=True it is drawn from U[0.4, 0.6] per i
 Augmentation: that exposure draw and, with `photo_noise` > 0, phone-photo degradation with that
 chance per item: the normalized image is encoded to sRGB, gets Gaussian sensor noise (sigma up to
 `PHOTO_NOISE_SIGMA` of full scale) and 8-bit quantization, and is decoded again, as a JPEG or PNG
-photo reaches `reconstruct` (capture/images.py decodes with the same sRGB curve). Mirroring an image would need a mirrored world per view
-(one environment map cannot be mirrored consistently for every camera of a rig), and rotating
-world + environment about +y leaves every camera-frame quantity unchanged, so neither is done.
+photo reaches `reconstruct` (capture/images.py decodes with the same sRGB curve). Flipping one image
+alone would need a mirrored world per view (one environment map cannot be mirrored consistently for every camera of
+a rig); mirroring the whole world, every camera and the map with it, is exact and is the trainer's
+(`train-normals --mirror-augment`, `NormalInputs.mirrored`). Rotating world + environment about +y leaves every
+camera-frame quantity unchanged.
 The random state of item i is numpy default_rng([seed, i, n]) with n the number of times this
 Dataset object has served item i, so a run is reproducible for a seed (with DataLoader workers,
 each worker counts its own draws).

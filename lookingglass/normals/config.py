@@ -108,6 +108,9 @@ class TrainConfig:
     augment: bool = setting(True, "Augment the training scenes.")
     photo_noise: float = setting(0.0, "Chance that an augmented scene is degraded like an 8-bit photo (noise, "
                                       "sRGB quantization).", range=(0, 1))
+    mirror_augment: bool = setting(False, "Train on the mirror image of half the steps' scenes (the world mirrored "
+                                          "in x = 0, every image flipped, the environment's columns reversed: the "
+                                          "physics' own symmetry, which the net otherwise never sees).")
     max_scenes: int = setting(0, "Use only the first N scenes (0: all).", range=(0, None))
     views_per_step: int = setting(0, "Random views of a scene per step (0: all; views are independent images).",
                                   range=(0, None))

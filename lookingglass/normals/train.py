@@ -21,7 +21,7 @@ from .. import training
 from ..progress import Reporter
 from ..weights import DEFAULT_ENVMAP_HEIGHT
 from .config import NORMAL_LOSSES, VARIANTS, TrainConfig  # noqa: F401 (re-exported)
-from .inputs import NormalInputs, network_tensors
+from .inputs import NormalInputs, mirror_vector_maps, network_tensors
 from .model import HULL_N1_CHANNELS, HULL_N2_CHANNELS, NormalNet
 
 
@@ -42,6 +42,13 @@ def normal_targets(sample: dict, device: str = "cpu") -> dict:
     mask = sample["mask"].to(device).bool()
     return dict(n1=sample["n1"].to(device).float(), n2=sample["n2"].to(device).float(), mask=mask,
                 n2_valid=sample["valid"].to(device).bool() & mask)
+
+
+def mirror_targets(t: dict) -> dict:
+    """`normal_targets` of the scene's mirror image (`NormalInputs.mirrored`'s world): the maps'
+    columns reversed, the camera-frame normals' x negated."""
+    vectors = lambda n: mirror_vector_maps(n.permute(0, 2, 3, 1)).permute(0, 3, 1, 2)  # noqa: E731 (V,3,H,W)
+    return dict(n1=vectors(t["n1"]), n2=vectors(t["n2"]), mask=t["mask"].flip(2), n2_valid=t["n2_valid"].flip(2))
 
 
 # Charbonnier width of the angle loss, in chord length (|n - t| = 2 sin(angle / 2)): ~1.1 degrees.
@@ -125,10 +132,12 @@ def train_normals(dataset, run_dir: str | os.PathLike, config: TrainConfig, devi
     device = session.device  # under torchrun on GPUs: this process's own
 
     def step(model: torch.nn.Module, index: int, global_step: int) -> tuple[Tensor, dict[str, float]]:
-        sample = select_views(dataset[index], config.views_per_step,
-                              torch.Generator().manual_seed(config.seed * 1_000_003 + global_step))
-        inputs, cost_volume = network_tensors(NormalInputs.from_sample(sample, config.ior, device), config.net)
-        t = normal_targets(sample, device)
+        draws = torch.Generator().manual_seed(config.seed * 1_000_003 + global_step)
+        sample = select_views(dataset[index], config.views_per_step, draws)
+        x, t = NormalInputs.from_sample(sample, config.ior, device), normal_targets(sample, device)
+        if config.mirror_augment and bool(torch.rand((), generator=draws) < 0.5):
+            x, t = x.mirrored(), mirror_targets(t)
+        inputs, cost_volume = network_tensors(x, config.net)
         if config.gain_head_only:
             n1, n2, gain = model(inputs, cost_volume, with_gain=True)
             return gain_head_loss(gain, n1, n2, inputs[:, HULL_N1_CHANNELS], inputs[:, HULL_N2_CHANNELS], t,
