@@ -63,7 +63,7 @@ def test_torchrun_two_processes(tiny_dataset, tmp_path):
         pytest.skip("torchrun not installed beside this Python")
     cmd = [torchrun, "--nproc_per_node=2", "--master_port=29517", "-m", "lookingglass.cli", "train-normals",
            "--data", str(tiny_dataset), "--views", "5", "--out", str(tmp_path / "ddp"), "--epochs", "1",
-           "--device", "cpu", "--quiet"]
+           "--device", "cpu", "--quiet", "--net.gain-head"]  # as shipped: a head no normal loss reads
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -218,3 +218,20 @@ def test_detail_head_learns_and_leaves_the_rest(tiny_dataset, tmp_path):
     """--detail-head-only: a detail head added to trained normals (their weights start it) lowers
     the normal loss while every other weight stays bit-exact."""
     _train_head_alone(tiny_dataset, tmp_path, "detail_head")
+
+
+def test_whole_net_fine_tune_keeps_the_gain_head(tiny_dataset, tmp_path):
+    """Fine-tuning the normals of a net with a gain head (no loss reads the head there, and DDP
+    refuses weights without a gradient) leaves the head as --init gave it and trains the rest."""
+    import dataclasses
+
+    ds = TransparentSceneDataset(tiny_dataset, "train")
+    base = _config(epochs=1)
+    base.net.gain_head = True
+    train_normals(ds, tmp_path / "a", base, max_steps=1)
+    init = tmp_path / "a" / "weights.safetensors"
+    train_normals(ds, tmp_path / "b", dataclasses.replace(base, init=str(init)))
+    a, b = load_weights(init).state_dict(), load_weights(tmp_path / "b" / "weights.safetensors").state_dict()
+    changed = {k for k in a if not torch.equal(a[k], b[k])}
+    others = {k for k in a if not k.startswith("gain_head.")}
+    assert changed <= others and len(changed) > len(others) // 2

@@ -155,6 +155,9 @@ def train_normals(dataset, run_dir: str | os.PathLike, config: TrainConfig, devi
         if only:  # Adam skips what needs no gradient; the rest stays as --init gave it
             for name, p in net.named_parameters():
                 p.requires_grad_(name.startswith(only))
+        elif config.net.gain_head:  # no loss reads it here (and DDP refuses weights without a gradient): kept as
+            for name, p in net.named_parameters():  # --init gave it, to be retrained with --gain-head-only
+                p.requires_grad_(not name.startswith("gain_head."))
         return net
 
     return session.fit(make_net, len(dataset), step,
