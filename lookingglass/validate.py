@@ -26,6 +26,7 @@ from .config import PipelineConfig, config_to_dict
 from .errors import LookingGlassError
 from .fileio import sha256_file, write_json
 from .metrics import load_mesh, normal_angle_errors, shape_metrics
+from .parallel import run_and_collect
 from .pipeline import reconstruct
 from .progress import Reporter
 from .render.compare import RERENDER_SAMPLES, RERENDER_WIDTH, photos_at, rerender
@@ -113,7 +114,7 @@ def evaluate_validation_set(root, out, config: PipelineConfig | None = None, nam
     records = []
     for name in reporter.track(names, description="validation scenes"):
         scene = root / name / "scene"
-        _reconstructed(scene, out / name, config, Reporter(quiet=True))
+        run_and_collect(lambda folder: _reconstructed(folder, out / name, config, Reporter(quiet=True)), scene)
         gt = load_mesh(root / name / "ground_truth.ply")
         hull, mesh = load_mesh(out / name / "visual_hull.ply"), load_mesh(out / name / "mesh.ply")
         report = json.loads((out / name / "report.json").read_text())

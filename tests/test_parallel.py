@@ -83,3 +83,34 @@ def test_a_worker_that_dies_is_a_clear_error_not_a_hang():
     with pytest.raises(LookingGlassError, match="worker process stopped abruptly .* --workers 1"):
         list(map_in_processes(die_on_two, range(6), 2))
     assert no_workers_left()
+
+
+def _make_mesh(holder: list) -> None:
+    import weakref
+
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)  # its helpers point back at it: a reference cycle
+    holder.append(weakref.ref(mesh))
+
+
+def test_run_and_collect_frees_a_scenes_meshes_at_once():
+    """A trimesh.Trimesh is a reference cycle: without a full collection it outlives the scene that
+    made it (with automatic collections off, as they effectively are in a process holding many
+    long-lived objects), and a long loop of scenes grows until it is killed."""
+    import gc
+
+    from lookingglass.parallel import run_and_collect
+
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        plain, collected = [], []
+        _make_mesh(plain)
+        assert plain[0]() is not None  # the premise: the cycle survives its scene
+        run_and_collect(_make_mesh, collected)
+        assert collected[0]() is None and plain[0]() is None
+    finally:
+        if was_enabled:
+            gc.enable()
+        gc.collect()

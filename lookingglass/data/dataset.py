@@ -67,7 +67,7 @@ from ..errors import ConfigError, LookingGlassError
 from ..config import HullConfig
 from ..physics.constants import (IOR_AIR, IOR_GLASS, IOR_MAX, IOR_MIN, PAPER_RENDER_FOV_X_DEG as PAPER_FOV_X_DEG,
                                  check_ior_range)
-from ..parallel import map_in_processes, worker_count
+from ..parallel import map_in_processes, run_and_collect, worker_count
 from .shape_config import ShapeConfig
 
 if TYPE_CHECKING:
@@ -532,7 +532,8 @@ def generate_dataset(out, scenes: int, views: int = 10, split: str = "train", se
     desc = f"{split} scenes" + (f" (shard {k}/{n})" if n > 1 else "")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # recorded per scene in meta.json instead
-        results = map(_worker, tasks) if workers == 1 else map_in_processes(_worker, tasks, workers)
+        results = ((run_and_collect(_worker, t) for t in tasks) if workers == 1 else
+                   map_in_processes(_worker, tasks, workers))
         for _, meta in reporter.track(results, total=len(tasks), description=desc):
             if meta:
                 metas.append(meta)

@@ -56,6 +56,7 @@ from ..fileio import sha256_file, write_atomic
 from ..hull import VisualHull
 from ..config import NormalStageConfig
 from ..normals.stage import run_normal_stage
+from ..parallel import run_and_collect
 from ..progress import Reporter
 from ..threads import torch_threads
 from ..weights import NormalWeights, load_normal_net
@@ -180,7 +181,8 @@ def prepare_features(dataset, run_dir: str | os.PathLike, config: PointTrainConf
     todo = [i for i in mine if not feature_path(run_dir, dataset, i).exists()]
     start = time.perf_counter()
     cfg = normal_weights.net.cfg
-    for i in reporter.track(todo, description="point features"):
+
+    def make(i: int) -> None:
         capture = dataset.capture(i, config.ior)
         V, H, W = capture.masks.shape
         if (V, H, W) != (cfg.num_views, cfg.height, cfg.width):
@@ -189,6 +191,9 @@ def prepare_features(dataset, run_dir: str | os.PathLike, config: PointTrainConf
         arrays = scene_point_data(normal_weights, capture, dataset.meshes(i)[0], dataset.hull(i), config,
                                   seed=config.seed * 1_000_003 + i, device=device)
         write_atomic(feature_path(run_dir, dataset, i), lambda tmp: np.savez(tmp, **arrays))
+
+    for i in reporter.track(todo, description="point features"):
+        run_and_collect(make, i)
     return {"made": todo, "skipped": len(mine) - len(todo), "seconds": round(time.perf_counter() - start, 2)}
 
 
