@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
 # Rebuild lookingglass/weights/points_10views.safetensors (+ .json): the 10-view point net (PNet, cpu preset),
-# a chain of 9 runs: 7 on up to 3000 procedural training scenes, the last two on 1000 scenes like users' captures.
+# a chain of 10 runs: 7 on up to 3000 procedural training scenes, the last three on 1000 scenes like users' captures.
 #
-# Time on a 2-core CPU: ~10 h from scratch: the 10-view normal net (~4.5 h, recipes/normals_10views.sh; skipped
-# if already made), ~1 h more data (scenes 614-2999) and ~4.9 h of point-net runs (features and training).
-# Provenance: lookingglass/weights/points_10views.json (2026-11-28). Usage: bash recipes/points_10views.sh
+# Time on a 2-core CPU: ~10.5 h from scratch: the 10-view normal net (~4.5 h, recipes/normals_10views.sh; skipped
+# if already made), ~1 h more data (scenes 614-2999) and ~5.4 h of point-net runs (features and training).
+# Provenance: lookingglass/weights/points_10views.json (2026-12-07). Usage: bash recipes/points_10views.sh
 # (settings: recipes/_lib.sh). Steps are skipped when their weights exist and resume when interrupted.
 #
 # Where this differs from the recorded commands (it cannot be reproduced exactly):
@@ -21,8 +21,8 @@
 # - Run 6 was also named runs/points10n (on a fresh machine); here runs/points10n2. It made a fresh feature
 #   cache; this recipe hard-links run 5's (the same normal weights and scenes: saves ~24 min).
 # - Since session 92 train-points makes the features with `reconstruct`'s normal stage (the mirror average and
-#   the views' consensus: points/train.py TRAINING_FEATURES); the recorded runs used each view's own prediction.
-#   Features take ~3x as long (~3.4 s a scene a process on the machine of session 92).
+#   the views' consensus: points/train.py TRAINING_FEATURES); the recorded runs 1-9 used each view's own
+#   prediction (run 10 the stage). Features take ~3x as long (~3.4 s a scene a process on the machine of session 92).
 # - The weights need not be bit-identical (torch 2.13.0+cpu then).
 set -euo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/_lib.sh"
@@ -96,4 +96,10 @@ points_on_users points10users 10 "$RUNS/normals10angle3/weights.safetensors" "$R
 STOP_AFTER=normals10hingegain bash recipes/normals_10views.sh
 points_on_users points10hinge 10 "$RUNS/normals10hingegain/weights.safetensors" "$RUNS/points10users/weights.safetensors"
 
-install_weights points10hinge points_10views
+# 10. 4 more on the same scenes with features from `reconstruct`'s own normal stage (points/train.py
+#     TRAINING_FEATURES: the mirror average and the views' consensus; until session 92 each view's own prediction),
+#     the same normal net as step 9, two DDP processes (~25 min of features, ~3.4 s a scene a process; 4 epochs of
+#     500 steps a process: ~5 min). A cache of step 9's is refused (features/source.json), so no features are reused.
+points_on_users points10mirror 10 "$RUNS/normals10hingegain/weights.safetensors" "$RUNS/points10hinge/weights.safetensors"
+
+install_weights points10mirror points_10views
