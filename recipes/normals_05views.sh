@@ -10,8 +10,8 @@
 # The earlier 5-view chain (2 epochs on 613 5-view scenes from the 10-view net's first run, then users' captures,
 # the angle loss, the detail head and its gain head: the shipped net until 2026-12-07) is kept below for
 # recipes/points_05views.sh, whose point-net runs were trained on its features; it runs only when STOP_AFTER names
-# one of its steps. Its provenance: `git show 0c230b0:lookingglass/weights/normals_05views.json` (sha256 a90916d4,
-# the shipped net until session 94). Where it differs from those recorded commands:
+# one of its steps. Where it differs from its recorded commands (docs/history.md, session 94, has the old
+# provenance):
 # - Its provenance started from lookingglass/weights/normals_10views.safetensors, which on 2026-11-23 was still
 #   the 10-view net's 2-epoch first run (init_sha256 e0c1ae03...); so it starts from runs/normals10.
 # - --max-scenes 613 is added (the folder held 613 scenes; it may hold more once points_05views.sh has run).
