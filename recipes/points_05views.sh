@@ -1,12 +1,11 @@
 #!/usr/bin/env bash
 # Rebuild lookingglass/weights/points_05views.safetensors (+ .json): the 5-view point net, fine-tuned from the
-# 10-view one's second run in a chain of 8 runs: 5 on up to 1599 procedural scenes, the last three on users' captures.
+# 10-view one's second run in a chain of 7 runs: 5 on up to 1599 procedural scenes, the last two on users' captures.
 #
-# Time on a 2-core CPU: ~13 h from scratch: the earlier 5-view normal nets (~3 h, recipes/normals_05views.sh's
-# earlier chain) and the shipped one (the 10-view net, ~4.8 h, and ~0.6 h at 5 views), the 10-view point net's
-# first two runs (~1.8 h, recipes/points_10views.sh up to runs/points10ft), then ~3.7 h of its own (~1 h more 5-view
-# data, ~2.7 h of point-net runs). Parts already made are skipped.
-# Provenance: lookingglass/weights/points_05views.json (2026-12-07). Usage: bash recipes/points_05views.sh
+# Time on a 2-core CPU: ~8 h from scratch: the 5-view normal net (~3 h, recipes/normals_05views.sh), the
+# 10-view point net's first two runs (~1.8 h, recipes/points_10views.sh up to runs/points10ft), then ~3.3 h of
+# its own (~1 h more 5-view data, ~2.3 h of point-net runs). Parts already made are skipped.
+# Provenance: lookingglass/weights/points_05views.json (2026-11-26). Usage: bash recipes/points_05views.sh
 # (settings: recipes/_lib.sh). Steps are skipped when their weights exist and resume when interrupted.
 #
 # Where this differs from the recorded commands (it cannot be reproduced exactly):
@@ -90,11 +89,4 @@ GENERATE=generate_users step points5users2 "$DATA/users5" 5 2000 \
     --epochs 6 --lr 1e-4 --lr-halve-epochs 3 --init "$RUNS/points5users/weights.safetensors" --max-scenes 2000 \
     --out "$RUNS/points5users2"
 
-# 8. 4 more on the first 1000 of those scenes with features from `reconstruct`'s own normal stage (points/train.py
-#    TRAINING_FEATURES: the mirror average and the views' consensus) and the 5-view normal net shipped since session
-#    94 (recipes/normals_05views.sh: the 10-view net fine-tuned at 5 views), as step 10 of points_10views.sh; two DDP
-#    processes (~17 min of features, ~3.4 s a scene a process; 4 epochs of 500 steps a process: ~4 min).
-STOP_AFTER=normals5from10gain bash recipes/normals_05views.sh
-points_on_users points5n510 5 "$RUNS/normals5from10gain/weights.safetensors" "$RUNS/points5users2/weights.safetensors"
-
-install_weights points5n510 points_05views
+install_weights points5users2 points_05views
