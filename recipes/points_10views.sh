@@ -98,11 +98,11 @@ points_on_users points10hinge 10 "$RUNS/normals10hingegain/weights.safetensors" 
 
 # 10. 4 more on the same scenes with features from `reconstruct`'s own normal stage (points/train.py
 #     TRAINING_FEATURES: the mirror average and the views' consensus; until session 92 each view's own prediction),
-#     the same normal net as step 9, two DDP processes (~25 min of features, ~3.4 s a scene a process; 4 epochs of
-#     500 steps a process: ~5 min). The shipped run made new features: step 9's were made, in session 52, from each
-#     view's own prediction. On a rebuild step 9 already makes them with today's normal stage and the same weights,
-#     so step 10 reuses its cache (train-points checks features/source.json, the weights' SHA-256 and the stage's
-#     settings, and refuses a cache that differs).
+#     the same normal net as step 9, two DDP processes (4 epochs of 500 steps a process: ~5 min). The shipped run
+#     made new features (~25 min, ~3.4 s a scene a process): step 9's had been made, in session 52, from each view's
+#     own prediction. On a rebuild step 9 already makes them with today's normal stage and the same weights, so step
+#     10 reuses its cache (train-points checks features/source.json, the weights' SHA-256 and the stage's settings,
+#     and refuses a cache that differs).
 reuse_features points10hinge points10mirror
 points_on_users points10mirror 10 "$RUNS/normals10hingegain/weights.safetensors" "$RUNS/points10hinge/weights.safetensors"
 
