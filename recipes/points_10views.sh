@@ -91,8 +91,9 @@ STOP_AFTER=normals10angle3 bash recipes/normals_10views.sh
 points_on_users points10users 10 "$RUNS/normals10angle3/weights.safetensors" "$RUNS/points10p/weights.safetensors"
 
 # 9. 4 more on the same scenes with the features of the normal net shipped since 2026-11-28 (normals_10views.sh step
-#    7, the hull hinge; its gain head leaves the normals bit-exact), two DDP processes (~9 min of features, 4 epochs
-#    of 500 steps a process: ~3 min).
+#    7, the hull hinge; its gain head leaves the normals bit-exact), two DDP processes (the shipped run: ~9 min of
+#    features from each view's own prediction; a rebuild makes them with today's normal stage, ~25 min; 4 epochs of
+#    500 steps a process: ~3 min).
 STOP_AFTER=normals10hingegain bash recipes/normals_10views.sh
 points_on_users points10hinge 10 "$RUNS/normals10hingegain/weights.safetensors" "$RUNS/points10users/weights.safetensors"
 
