@@ -759,21 +759,34 @@ class _NormalTarget:
 
 
 def _descend(x: np.ndarray, x0: np.ndarray, faces: np.ndarray, target, precondition,
-             step: float, iterations: int, growth: float = 1.0) -> tuple[np.ndarray, list[float]]:
+             step: float, iterations: int, growth: float = 1.0,
+             conjugate: bool = False) -> tuple[np.ndarray, list[float]]:
     """Descend `target.loss` (the photometric or the normal term; with grad=True it returns the loss and
     a function giving its gradient, `_gradient`) from `x`: each step is the loss
     gradient smoothed by `precondition` (the silhouette solve's own system, so the step is smooth
     and keeps the rims on their masks), scaled so its 99th-percentile vertex moves `step`, then
     halved until the loss falls; the step length carries over, times `growth` after a step that
-    fell (at most the first `step`). Returns the vertices and the loss before each step and after
+    fell (at most the first `step`). With `conjugate`, each direction adds the last one times the
+    preconditioned Polak-Ribiere+ factor (consecutive smoothed gradients point ~opposite ways, cosine
+    ~-0.9 on a 10-view capture: the plain steps zig-zag), restarted where it is no descent direction
+    or after a step that could not fall. Returns the vertices and the loss before each step and after
     the last."""
     largest = step
     reference = face_normals(x0, faces)
     losses = []
     value, g = target.loss(x, faces, grad=True)
+    direction = last = None  # the conjugate descent's direction and (gradient, smoothed gradient)
     for _ in range(iterations):
         losses.append(value)
-        d = -precondition(g())
+        gradient = g()
+        smoothed = precondition(gradient)
+        d = -smoothed
+        if conjugate:
+            if direction is not None:
+                beta = float((gradient * (smoothed - last[1])).sum()) / max(float((last[0] * last[1]).sum()), 1e-300)
+                d = d + max(beta, 0.0) * direction
+                d = d if float((d * gradient).sum()) < 0 else -smoothed
+            direction, last = d.copy(), (gradient, smoothed)
         d /= max(float(np.percentile(np.linalg.norm(d, axis=1), 99)), 1e-12)
         while step > 1e-4:
             proposed = _unfolded(reference, x, x + step * d, faces)
@@ -785,6 +798,8 @@ def _descend(x: np.ndarray, x0: np.ndarray, faces: np.ndarray, target, precondit
                 step = min(step * growth, largest)
                 break
             step /= 2
+        else:
+            direction = None
     return x, losses + [value]
 
 
@@ -1260,7 +1275,8 @@ def _refine_once(mesh: trimesh.Trimesh, hull: VisualHull, masks: np.ndarray, cam
         s, g = field_values(fields, cams, x)
         solve = solver.operator(_constraints(x, faces, s, g, cams, pull, config, w_sil, sil_share, fields).M,
                                 config.descent_cg_iterations)
-        x, losses = _descend(x, x0, faces, target, solve, step * config.edge_length, iterations, growth)
+        x, losses = _descend(x, x0, faces, target, solve, step * config.edge_length, iterations, growth,
+                             config.descent_conjugate)
         return losses
 
     mean_w = lambda a: weighted_mean(a, weights)  # noqa: E731
