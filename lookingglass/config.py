@@ -374,8 +374,9 @@ class RefineConfig:
                                              "loss (at most normal_step; 1: it only shrinks).", range=(1, 4))
     descent_conjugate: bool = setting(False, "Conjugate (Polak-Ribiere+) directions in the normal and photometric "
                                              "descents: their loss falls ~25% lower in the same steps, but on val480 "
-                                             "CD 3.71 -> 3.55 with CDN-mean 7.06 -> 7.15 (worse on 6 of 10) and Metro "
-                                             "9.77 -> 9.92, so off (docs/results.md, session 96).")
+                                             "CD 3.71 -> 3.55 with CDN-mean 7.06 -> 7.15 (worse on 6 of 10), and on "
+                                             "30 scenes of the 480x360 test split CD -0.14 +- 0.14, CDN-mean +0.06 +- "
+                                             "0.05 (worse on 19): off (docs/results.md, session 96).")
     normal_trust_gain: float = setting(1.0, "A pixel pulls where the gain head predicts the network's normals closer to "
                                             "the truth than the mesh's by more than this, in degrees, at both hits.",
                                        range=(None, None))
