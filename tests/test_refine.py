@@ -912,7 +912,7 @@ def test_a_round_whose_normal_term_undid_its_pull_is_run_again_without_it(scene,
     fed = lambda mesh: normal_stage(capture, SimpleNamespace(mesh=mesh), lambda c: truth(c).normal1,  # noqa: E731
                                     lambda c: truth(c).normal2, 0.0, 5.0)
 
-    def swelling(x, x0, faces, target, precondition, step, iterations, growth=1.0):
+    def swelling(x, x0, faces, target, precondition, step, iterations, growth=1.0, conjugate=False):
         centre = x.mean(axis=0)
         return centre + 1.03 * (x - centre), [1.0, 0.5]
 
