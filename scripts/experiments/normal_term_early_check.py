@@ -21,7 +21,7 @@ normal_net, point_net = load_normal_net(shipped_weights(views)[0]), load_point_n
 trace = []
 orig_descend = R._descend
 
-def descend(x, x0, faces, target, precondition, step, iterations, growth=1.0):
+def descend(x, x0, faces, target, precondition, step, iterations, growth=1.0, conjugate=False):
     accepted = [x.copy()]
     orig_loss = type(target).loss
     best = [None]
@@ -35,7 +35,7 @@ def descend(x, x0, faces, target, precondition, step, iterations, growth=1.0):
         return value, g
     type(target).loss = loss
     try:
-        result = orig_descend(x, x0, faces, target, precondition, step, iterations, growth)
+        result = orig_descend(x, x0, faces, target, precondition, step, iterations, growth, conjugate)
     finally:
         type(target).loss = orig_loss
     trace.append({"faces": faces, "accepted": accepted})
