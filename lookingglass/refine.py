@@ -786,8 +786,8 @@ def _descend(x: np.ndarray, x0: np.ndarray, faces: np.ndarray, target, precondit
                 beta = float((gradient * (smoothed - last[1])).sum()) / max(float((last[0] * last[1]).sum()), 1e-300)
                 d = d + max(beta, 0.0) * direction
                 d = d if float((d * gradient).sum()) < 0 else -smoothed
-            direction, last = d.copy(), (gradient, smoothed)
-        d /= max(float(np.percentile(np.linalg.norm(d, axis=1), 99)), 1e-12)
+            direction, last = d, (gradient, smoothed)
+        d = d / max(float(np.percentile(np.linalg.norm(d, axis=1), 99)), 1e-12)
         while step > 1e-4:
             proposed = _unfolded(reference, x, x + step * d, faces)
             # each trial carries its gradient (run only if it is accepted): an accepted one is the next
